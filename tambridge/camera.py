@@ -1,0 +1,149 @@
+"""Pinhole camera intrinsics, TUM presets and camera files (YAML or ``key value`` text)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from tambridge.errors import CameraConfigError
+
+
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics of the colour camera, in pixels; ``distortion`` is OpenCV's (k1 k2 p1 p2 k3)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix, float64."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(c) > 0 for c in self.distortion)
+
+    def undistorted(self) -> "Camera":
+        """The same intrinsics with no distortion (what frames are after undistortion)."""
+        return dataclasses.replace(self, distortion=(0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def scaled(self, factor: float) -> "Camera":
+        """Intrinsics of the image resized by ``factor`` (pixel-centre convention of cv2.resize)."""
+        return Camera(
+            width=int(round(self.width * factor)),
+            height=int(round(self.height * factor)),
+            fx=self.fx * factor,
+            fy=self.fy * factor,
+            cx=(self.cx + 0.5) * factor - 0.5,
+            cy=(self.cy + 0.5) * factor - 0.5,
+            distortion=self.distortion,
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class RgbdSensor:
+    """A camera plus how its depth PNGs encode metres: ``depth_m = raw / depth_scale``; ``raw == depth_invalid`` -> 0."""
+
+    camera: Camera
+    depth_scale: float = 5000.0
+    depth_invalid: int | None = None
+
+
+# TUM RGB-D calibration (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats), 640x480.
+TUM_PRESETS: dict[str, RgbdSensor] = {
+    "fr1": RgbdSensor(Camera(640, 480, 517.3, 516.5, 318.6, 255.3, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633))),
+    "fr2": RgbdSensor(Camera(640, 480, 520.9, 521.0, 325.1, 249.7, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172))),
+    "fr3": RgbdSensor(Camera(640, 480, 535.4, 539.2, 320.1, 247.6)),
+}
+
+_CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+
+
+def tum_preset_for_folder(folder: Path) -> RgbdSensor | None:
+    """The TUM preset named by a folder such as ``rgbd_dataset_freiburg1_xyz`` or ``tum_fr2_desk``, else None."""
+    name = Path(folder).resolve().name.lower()
+    for index in ("1", "2", "3"):
+        if f"freiburg{index}" in name or f"fr{index}" in name:
+            return TUM_PRESETS[f"fr{index}"]
+    return None
+
+
+def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
+    """Build a sensor from a parsed camera file; ``source`` names the file in errors."""
+    missing = [key for key in _CAMERA_KEYS if key not in values]
+    if missing:
+        raise CameraConfigError(f"{source}: missing {', '.join(missing)}; a camera file needs {', '.join(_CAMERA_KEYS)}")
+    try:
+        distortion = values.get("distortion") or [values.get(f"d{i}", 0.0) for i in range(5)]
+        camera = Camera(
+            width=int(values["width"]),
+            height=int(values["height"]),
+            fx=float(values["fx"]),
+            fy=float(values["fy"]),
+            cx=float(values["cx"]),
+            cy=float(values["cy"]),
+            distortion=tuple(float(c) for c in distortion),
+        )
+        invalid = values.get("depth_invalid")
+        sensor = RgbdSensor(
+            camera=camera,
+            depth_scale=float(values.get("depth_scale", 5000.0)),
+            depth_invalid=None if invalid is None else int(float(invalid)),
+        )
+    except (TypeError, ValueError) as error:
+        raise CameraConfigError(f"{source}: {error}; values must be numbers") from error
+    if camera.width <= 0 or camera.height <= 0 or camera.fx <= 0 or camera.fy <= 0 or sensor.depth_scale <= 0:
+        raise CameraConfigError(f"{source}: width, height, fx, fy and depth_scale must be positive")
+    return sensor
+
+
+def load_sensor_file(path: Path) -> RgbdSensor:
+    """Read a camera file: YAML (``.yaml``/``.yml``) or text lines of ``key value`` with ``#`` comments."""
+    path = Path(path)
+    if not path.is_file():
+        raise CameraConfigError(f"{path}: camera file not found; pass --camera with a YAML file of {', '.join(_CAMERA_KEYS)}")
+    text = path.read_text()
+    if path.suffix.lower() in (".yaml", ".yml"):
+        try:
+            values = yaml.safe_load(text) or {}
+        except yaml.YAMLError as error:
+            raise CameraConfigError(f"{path}: not valid YAML ({error})") from error
+        if not isinstance(values, dict):
+            raise CameraConfigError(f"{path}: expected a mapping of camera keys")
+        return sensor_from_mapping(values, path)
+    values: dict = {}
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) < 2:
+            raise CameraConfigError(f"{path} line {number}: expected 'key value', got {line!r}")
+        values[parts[0]] = parts[1] if len(parts) == 2 else parts[1:]
+    return sensor_from_mapping(values, path)
+
+
+def find_sensor(folder: Path, camera_file: Path | None = None) -> RgbdSensor:
+    """The sensor of a sequence: an explicit file, else camera.yaml/camera.txt in the folder, else a TUM preset."""
+    folder = Path(folder)
+    if camera_file is not None:
+        return load_sensor_file(camera_file)
+    for name in ("camera.yaml", "camera.yml", "camera.txt"):
+        if (folder / name).is_file():
+            return load_sensor_file(folder / name)
+    preset = tum_preset_for_folder(folder)
+    if preset is None:
+        raise CameraConfigError(
+            f"{folder}: no camera.yaml or camera.txt and the folder name names no TUM camera (freiburg1/2/3); "
+            "pass --camera camera.yaml with width, height, fx, fy, cx, cy, depth_scale"
+        )
+    return preset

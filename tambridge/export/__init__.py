@@ -1,0 +1,1 @@
+"""Exporters: trajectories, splats, meshes and run records, all written atomically."""

@@ -1,0 +1,105 @@
+"""SE(3) maths over numpy arrays: the one module where rotations and rigid transforms are converted.
+
+Tangent vectors are ordered ``(rho, phi)``: translation part first, rotation part second, so that
+``exp(xi) = [[exp_so3(phi), V(phi) rho], [0, 1]]`` (Barfoot, "State Estimation for Robotics", eq. 7.83).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def hat(phi: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrix of a 3-vector: ``hat(a) @ b == cross(a, b)``. (3,) -> (3, 3)."""
+    x, y, z = phi
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def exp_se3(xi: np.ndarray) -> np.ndarray:
+    """Exponential map of a twist ``xi = (rho, phi)`` (6,) to a 4x4 rigid transform."""
+    xi = np.asarray(xi, dtype=np.float64)
+    rho, phi = xi[:3], xi[3:]
+    angle = np.linalg.norm(phi)
+    phi_hat = hat(phi)
+    if angle < 1e-8:
+        rotation = np.eye(3) + phi_hat
+        v = np.eye(3) + 0.5 * phi_hat
+    else:
+        a = np.sin(angle) / angle
+        b = (1.0 - np.cos(angle)) / angle**2
+        c = (1.0 - a) / angle**2
+        rotation = np.eye(3) + a * phi_hat + b * phi_hat @ phi_hat
+        v = np.eye(3) + b * phi_hat + c * phi_hat @ phi_hat
+    out = np.eye(4)
+    out[:3, :3] = rotation
+    out[:3, 3] = v @ rho
+    return out
+
+
+def log_se3(transform: np.ndarray) -> np.ndarray:
+    """Logarithm of a 4x4 rigid transform to a twist ``(rho, phi)`` (6,); inverse of :func:`exp_se3`."""
+    rotation = transform[:3, :3]
+    phi = Rotation.from_matrix(rotation).as_rotvec()
+    angle = np.linalg.norm(phi)
+    phi_hat = hat(phi)
+    if angle < 1e-8:
+        v_inv = np.eye(3) - 0.5 * phi_hat
+    else:
+        half = 0.5 * angle
+        v_inv = (
+            np.eye(3)
+            - 0.5 * phi_hat
+            + (1.0 - half * np.cos(half) / np.sin(half)) / angle**2 * phi_hat @ phi_hat
+        )
+    return np.concatenate([v_inv @ transform[:3, 3], phi])
+
+
+def inverse(transform: np.ndarray) -> np.ndarray:
+    """Inverse of a 4x4 rigid transform (exact, without a general matrix inverse)."""
+    out = np.eye(4)
+    out[:3, :3] = transform[:3, :3].T
+    out[:3, 3] = -transform[:3, :3].T @ transform[:3, 3]
+    return out
+
+
+def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to points ``(N, 3)`` in frame b; returns ``(N, 3)`` in frame a."""
+    return points_b @ a_from_b[:3, :3].T + a_from_b[:3, 3]
+
+
+def pose_from_tum(position_m: np.ndarray, quaternion_xyzw: np.ndarray) -> np.ndarray:
+    """4x4 ``world_from_camera`` from a TUM line's ``tx ty tz`` and ``qx qy qz qw``."""
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_quat(quaternion_xyzw).as_matrix()
+    out[:3, 3] = position_m
+    return out
+
+
+def tum_from_pose(world_from_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(position_m (3,), quaternion_xyzw (4,) with qw >= 0)`` of a 4x4 pose."""
+    quaternion = Rotation.from_matrix(world_from_camera[:3, :3]).as_quat()
+    if quaternion[3] < 0:
+        quaternion = -quaternion
+    return world_from_camera[:3, 3].copy(), quaternion
+
+
+def look_at(eye_m: np.ndarray, target_m: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """``world_from_camera`` of an OpenCV camera at ``eye_m`` looking at ``target_m``.
+
+    The camera's z axis points at the target, its y axis (image down) is opposite to ``up``.
+    """
+    forward = np.asarray(target_m, float) - np.asarray(eye_m, float)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    out = np.eye(4)
+    out[:3, :3] = np.stack([right, down, forward], axis=1)
+    out[:3, 3] = eye_m
+    return out
+
+
+def interpolate_pose(pose_a: np.ndarray, pose_b: np.ndarray, fraction: float) -> np.ndarray:
+    """Pose a fraction of the way from ``pose_a`` to ``pose_b`` along the SE(3) geodesic (both 4x4)."""
+    return pose_a @ exp_se3(fraction * log_se3(inverse(pose_a) @ pose_b))

@@ -1,0 +1,248 @@
+"""Reader of RGB-D sequences in the TUM layout: ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``.
+
+Colour and depth are associated by nearest timestamp (greedy, as TUM's ``associate.py``); frames load
+lazily, one at a time, so a sequence of any length costs the memory of a frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from tambridge.camera import Camera, RgbdSensor, find_sensor
+from tambridge.errors import SequenceFormatError
+from tambridge.trajectory import Trajectory, read_tum_trajectory
+
+MAX_ASSOCIATION_DIFFERENCE_S = 0.02
+PLAUSIBLE_MEDIAN_DEPTH_M = (0.1, 10.0)
+
+
+@dataclasses.dataclass
+class Frame:
+    """One RGB-D frame: ``rgb`` (H, W, 3) uint8, ``depth_m`` (H, W) float32 metres (0 = invalid)."""
+
+    index: int
+    timestamp_s: float
+    rgb: np.ndarray
+    depth_m: np.ndarray
+
+
+def read_file_list(path: Path) -> list[tuple[float, str]]:
+    """Parse a TUM ``timestamp filename`` list; errors name the file and line."""
+    if not path.is_file():
+        raise SequenceFormatError(
+            f"{path}: not found; a TUM sequence folder needs rgb.txt and depth.txt "
+            "(lines of 'timestamp filename'), as in the TUM RGB-D downloads"
+        )
+    entries = []
+    for number, line in enumerate(path.read_text(errors="replace").splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) < 2:
+            raise SequenceFormatError(f"{path} line {number}: expected 'timestamp filename', got {line!r}")
+        try:
+            timestamp = float(parts[0])
+        except ValueError:
+            raise SequenceFormatError(f"{path} line {number}: timestamp {parts[0]!r} is not a number") from None
+        if not np.isfinite(timestamp):
+            raise SequenceFormatError(f"{path} line {number}: timestamp {parts[0]!r} is not finite")
+        entries.append((timestamp, parts[1]))
+    if not entries:
+        raise SequenceFormatError(f"{path}: lists no images")
+    entries.sort(key=lambda entry: entry[0])
+    return entries
+
+
+def associate(
+    timestamps_a: np.ndarray, timestamps_b: np.ndarray, max_difference_s: float = MAX_ASSOCIATION_DIFFERENCE_S
+) -> list[tuple[int, int]]:
+    """Index pairs (i, j) with ``|a_i - b_j| < max_difference_s``, greedy by smallest difference, each index once.
+
+    This is the matching of TUM's ``associate.py`` (offset 0); pairs are returned sorted by ``a``.
+    """
+    timestamps_a = np.asarray(timestamps_a, float)
+    timestamps_b = np.asarray(timestamps_b, float)
+    candidates = []
+    for i, stamp in enumerate(timestamps_a):
+        low = np.searchsorted(timestamps_b, stamp - max_difference_s, side="left")
+        high = np.searchsorted(timestamps_b, stamp + max_difference_s, side="right")
+        for j in range(low, high):
+            difference = abs(stamp - timestamps_b[j])
+            if difference < max_difference_s:
+                candidates.append((difference, i, j))
+    candidates.sort()
+    used_a, used_b, pairs = set(), set(), []
+    for _, i, j in candidates:
+        if i not in used_a and j not in used_b:
+            used_a.add(i)
+            used_b.add(j)
+            pairs.append((i, j))
+    return sorted(pairs)
+
+
+class RgbdSequence:
+    """A TUM-layout RGB-D sequence: associated frames loaded on access, undistorted where the camera says.
+
+    ``camera`` is the camera of the frames this class returns (distortion removed).
+    """
+
+    def __init__(
+        self,
+        folder: Path,
+        sensor: RgbdSensor,
+        rgb_paths: list[Path],
+        depth_paths: list[Path],
+        timestamps_s: np.ndarray,
+        ground_truth: Trajectory | None,
+    ) -> None:
+        self.folder = folder
+        self.sensor = sensor
+        self.rgb_paths = rgb_paths
+        self.depth_paths = depth_paths
+        self.timestamps_s = timestamps_s
+        self.ground_truth = ground_truth
+        self.camera: Camera = sensor.camera.undistorted()
+        self._undistort_maps = None
+        if sensor.camera.has_distortion:
+            source = sensor.camera
+            self._undistort_maps = cv2.initUndistortRectifyMap(
+                source.K, np.array(source.distortion), None, source.K, (source.width, source.height), cv2.CV_32FC1
+            )
+
+    def __len__(self) -> int:
+        return len(self.timestamps_s)
+
+    def __getitem__(self, index: int) -> Frame:
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        rgb = self.read_rgb(self.rgb_paths[index])
+        depth_m = self.read_depth_m(self.depth_paths[index])
+        if depth_m.shape != rgb.shape[:2]:
+            raise SequenceFormatError(
+                f"{self.depth_paths[index]}: depth is {depth_m.shape[1]}x{depth_m.shape[0]} but its colour image "
+                f"{self.rgb_paths[index].name} is {rgb.shape[1]}x{rgb.shape[0]}; colour and depth must be registered"
+            )
+        if self._undistort_maps is not None:
+            map_x, map_y = self._undistort_maps
+            rgb = cv2.remap(rgb, map_x, map_y, cv2.INTER_LINEAR)
+            # Nearest neighbour: blending depth across an edge invents surfaces that do not exist.
+            depth_m = cv2.remap(depth_m, map_x, map_y, cv2.INTER_NEAREST)
+        return Frame(index=index, timestamp_s=float(self.timestamps_s[index]), rgb=rgb, depth_m=depth_m)
+
+    def __iter__(self):
+        for index in range(len(self)):
+            yield self[index]
+
+    def read_rgb(self, path: Path) -> np.ndarray:
+        """Colour image as (H, W, 3) uint8 RGB, checked against the camera size."""
+        image = _imread(path, cv2.IMREAD_COLOR)
+        if image.dtype != np.uint8:
+            raise SequenceFormatError(f"{path}: colour image must be 8-bit, got {image.dtype}")
+        camera = self.sensor.camera
+        if image.shape[:2] != (camera.height, camera.width):
+            raise SequenceFormatError(
+                f"{path}: image is {image.shape[1]}x{image.shape[0]} but the camera is {camera.width}x{camera.height}; "
+                "fix width/height in camera.yaml (--camera)"
+            )
+        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+    def read_depth_m(self, path: Path) -> np.ndarray:
+        """Depth PNG (uint16) as (H, W) float32 metres, 0 where invalid."""
+        raw = _imread(path, cv2.IMREAD_UNCHANGED)
+        if raw.ndim != 2 or raw.dtype != np.uint16:
+            raise SequenceFormatError(
+                f"{path}: depth must be a single-channel 16-bit PNG, got {raw.dtype} with shape {raw.shape}; "
+                "8-bit or colour depth loses the range (re-export depth as uint16)"
+            )
+        depth_m = raw.astype(np.float32) / np.float32(self.sensor.depth_scale)
+        if self.sensor.depth_invalid is not None:
+            depth_m[raw == self.sensor.depth_invalid] = 0.0
+        return depth_m
+
+
+def _imread(path: Path, flags: int) -> np.ndarray:
+    if not path.is_file():
+        raise SequenceFormatError(f"{path}: image listed in the index file does not exist")
+    if path.stat().st_size == 0:
+        raise SequenceFormatError(f"{path}: empty file; re-extract the sequence")
+    image = cv2.imread(str(path), flags)
+    if image is None or image.size == 0:
+        raise SequenceFormatError(f"{path}: cannot decode image (corrupt or truncated); re-extract the sequence")
+    return image
+
+
+def open_sequence(
+    folder: Path,
+    camera_file: Path | None = None,
+    stride: int = 1,
+    max_frames: int | None = None,
+    check_depth_scale: bool = True,
+) -> RgbdSequence:
+    """Open a TUM-layout folder: associate colour and depth, pick the camera, load ground truth if present.
+
+    ``stride`` keeps every n-th associated frame, ``max_frames`` caps the count after striding.
+    The depth scale is checked on the first frame: its median valid depth must lie in 0.1-10 m.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise SequenceFormatError(f"{folder}: not a folder; pass a TUM RGB-D sequence folder (with rgb.txt, depth.txt)")
+    if not (folder / "rgb.txt").is_file() and not (folder / "depth.txt").is_file():
+        raise SequenceFormatError(
+            f"{folder}: not a sequence folder (no rgb.txt or depth.txt); "
+            "download one with 'tambridge download fr1/desk --to DIR' or make one with 'tambridge synth DIR'"
+        )
+    if stride < 1:
+        raise SequenceFormatError(f"stride must be >= 1, got {stride}")
+    rgb_list = read_file_list(folder / "rgb.txt")
+    depth_list = read_file_list(folder / "depth.txt")
+    rgb_stamps = np.array([stamp for stamp, _ in rgb_list])
+    depth_stamps = np.array([stamp for stamp, _ in depth_list])
+    pairs = associate(rgb_stamps, depth_stamps)
+    if not pairs:
+        raise SequenceFormatError(
+            f"{folder / 'rgb.txt'}: no colour timestamp lies within {MAX_ASSOCIATION_DIFFERENCE_S} s of a depth "
+            f"timestamp in depth.txt (rgb {rgb_stamps[0]:.3f}..{rgb_stamps[-1]:.3f}, "
+            f"depth {depth_stamps[0]:.3f}..{depth_stamps[-1]:.3f}); check that both lists come from the same recording"
+        )
+    pairs = pairs[::stride]
+    if max_frames is not None:
+        pairs = pairs[:max_frames]
+    sensor = find_sensor(folder, camera_file)
+    ground_truth = None
+    if (folder / "groundtruth.txt").is_file():
+        ground_truth = read_tum_trajectory(folder / "groundtruth.txt")
+    sequence = RgbdSequence(
+        folder=folder,
+        sensor=sensor,
+        rgb_paths=[folder / rgb_list[i][1] for i, _ in pairs],
+        depth_paths=[folder / depth_list[j][1] for _, j in pairs],
+        timestamps_s=np.array([rgb_stamps[i] for i, _ in pairs]),
+        ground_truth=ground_truth,
+    )
+    if check_depth_scale:
+        check_depth_scale_plausible(sequence)
+    return sequence
+
+
+def check_depth_scale_plausible(sequence: RgbdSequence) -> None:
+    """Raise if the first frame's median valid depth lies outside 0.1-10 m (a wrong ``depth_scale``)."""
+    path = sequence.depth_paths[0]
+    depth_m = sequence.read_depth_m(path)
+    valid = depth_m[depth_m > 0]
+    if valid.size == 0:
+        return  # an all-invalid first frame says nothing about the scale; tracking deals with it
+    median_m = float(np.median(valid))
+    low, high = PLAUSIBLE_MEDIAN_DEPTH_M
+    if not low <= median_m <= high:
+        raw_median = median_m * sequence.sensor.depth_scale
+        suggestion = raw_median / 2.0
+        raise SequenceFormatError(
+            f"{path}: median depth is {median_m:.3g} m with depth_scale {sequence.sensor.depth_scale:g}, outside "
+            f"{low}-{high} m; set depth_scale in camera.yaml (--camera) to the raw units per metre "
+            f"(TUM 5000, millimetres 1000; about {suggestion:.0f} would put the median at 2 m)"
+        )

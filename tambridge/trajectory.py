@@ -1,0 +1,103 @@
+"""Timestamped camera trajectories and the TUM text format (``timestamp tx ty tz qx qy qz qw``)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from tambridge.errors import TrajectoryFormatError
+from tambridge.export.atomic import atomic_write_text
+from tambridge.geometry import interpolate_pose, pose_from_tum, tum_from_pose
+
+
+@dataclasses.dataclass
+class Trajectory:
+    """Poses at times: ``timestamps_s`` (N,) float64 increasing, ``world_from_camera`` (N, 4, 4) float64."""
+
+    timestamps_s: np.ndarray
+    world_from_camera: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.timestamps_s = np.asarray(self.timestamps_s, dtype=np.float64)
+        self.world_from_camera = np.asarray(self.world_from_camera, dtype=np.float64).reshape(-1, 4, 4)
+        assert self.timestamps_s.shape == (len(self.world_from_camera),), (
+            self.timestamps_s.shape,
+            self.world_from_camera.shape,
+        )
+
+    def __len__(self) -> int:
+        return len(self.timestamps_s)
+
+    @property
+    def positions_m(self) -> np.ndarray:
+        """Camera centres in the world frame, (N, 3)."""
+        return self.world_from_camera[:, :3, 3]
+
+    def pose_at(self, timestamp_s: float) -> np.ndarray:
+        """Pose at a time inside the trajectory's span, interpolated on SE(3) between neighbours."""
+        index = int(np.searchsorted(self.timestamps_s, timestamp_s))
+        if index == 0:
+            return self.world_from_camera[0].copy()
+        if index >= len(self):
+            return self.world_from_camera[-1].copy()
+        t0, t1 = self.timestamps_s[index - 1], self.timestamps_s[index]
+        return interpolate_pose(self.world_from_camera[index - 1], self.world_from_camera[index], (timestamp_s - t0) / (t1 - t0))
+
+
+def parse_tum_trajectory(text: str, source: str) -> Trajectory:
+    """Parse TUM trajectory text; ``source`` names the file in errors. Lines starting with ``#`` are comments."""
+    timestamps, poses = [], []
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != 8:
+            raise TrajectoryFormatError(f"{source} line {number}: expected 8 columns 'timestamp tx ty tz qx qy qz qw', got {len(parts)}")
+        try:
+            values = np.array([float(p) for p in parts])
+        except ValueError as error:
+            raise TrajectoryFormatError(f"{source} line {number}: {error}") from error
+        if not np.all(np.isfinite(values)):
+            raise TrajectoryFormatError(f"{source} line {number}: non-finite value")
+        quaternion = values[4:8]
+        norm = np.linalg.norm(quaternion)
+        if norm < 1e-6:
+            raise TrajectoryFormatError(f"{source} line {number}: zero quaternion")
+        timestamps.append(values[0])
+        poses.append(pose_from_tum(values[1:4], quaternion / norm))
+    if not timestamps:
+        raise TrajectoryFormatError(f"{source}: no poses (empty file or only comments)")
+    timestamps = np.array(timestamps)
+    if np.any(np.diff(timestamps) <= 0):
+        order = np.argsort(timestamps, kind="stable")
+        timestamps = timestamps[order]
+        poses = [poses[i] for i in order]
+        keep = np.concatenate([[True], np.diff(timestamps) > 0])
+        timestamps, poses = timestamps[keep], [p for p, k in zip(poses, keep) if k]
+    return Trajectory(timestamps, np.stack(poses))
+
+
+def read_tum_trajectory(path: Path) -> Trajectory:
+    """Read a TUM trajectory file (sorted by time; duplicate stamps keep their first pose)."""
+    path = Path(path)
+    if not path.is_file():
+        raise TrajectoryFormatError(f"{path}: trajectory file not found")
+    return parse_tum_trajectory(path.read_text(), str(path))
+
+
+def format_tum_trajectory(trajectory: Trajectory) -> str:
+    """TUM text of a trajectory, one ``timestamp tx ty tz qx qy qz qw`` line per pose."""
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for timestamp, pose in zip(trajectory.timestamps_s, trajectory.world_from_camera):
+        position, quaternion = tum_from_pose(pose)
+        values = " ".join(f"{v:.9f}" for v in (*position, *quaternion))
+        lines.append(f"{timestamp:.6f} {values}")
+    return "\n".join(lines) + "\n"
+
+
+def write_tum_trajectory(path: Path, trajectory: Trajectory) -> None:
+    """Write a trajectory in TUM format atomically."""
+    atomic_write_text(Path(path), format_tum_trajectory(trajectory))
