@@ -103,3 +103,36 @@ def look_at(eye_m: np.ndarray, target_m: np.ndarray, up: np.ndarray = np.array([
 def interpolate_pose(pose_a: np.ndarray, pose_b: np.ndarray, fraction: float) -> np.ndarray:
     """Pose a fraction of the way from ``pose_a`` to ``pose_b`` along the SE(3) geodesic (both 4x4)."""
     return pose_a @ exp_se3(fraction * log_se3(inverse(pose_a) @ pose_b))
+
+
+def exp_se3_torch(xi: "torch.Tensor") -> "torch.Tensor":
+    """Differentiable twin of :func:`exp_se3` for a torch twist ``(rho, phi)`` (6,) -> (4, 4), same dtype/device.
+
+    Near ``phi = 0`` the coefficients use their Taylor series in ``angle**2`` so that the value and its
+    gradient stay exact at the identity (where the Fusion Bridge evaluates pose gradients).
+    """
+    import torch
+
+    rho, phi = xi[:3], xi[3:]
+    angle_sq = (phi * phi).sum()
+    small = angle_sq < 1e-4
+    safe_sq = torch.where(small, torch.ones_like(angle_sq), angle_sq)
+    angle = torch.sqrt(safe_sq)
+    a = torch.where(small, 1.0 - angle_sq / 6.0 + angle_sq**2 / 120.0, torch.sin(angle) / angle)
+    b = torch.where(small, 0.5 - angle_sq / 24.0 + angle_sq**2 / 720.0, (1.0 - torch.cos(angle)) / safe_sq)
+    c = torch.where(small, 1.0 / 6.0 - angle_sq / 120.0 + angle_sq**2 / 5040.0, (1.0 - a) / safe_sq)
+    zero = torch.zeros_like(angle_sq)
+    phi_hat = torch.stack(
+        [
+            torch.stack([zero, -phi[2], phi[1]]),
+            torch.stack([phi[2], zero, -phi[0]]),
+            torch.stack([-phi[1], phi[0], zero]),
+        ]
+    )
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
+    phi_hat_sq = phi_hat @ phi_hat
+    rotation = eye + a * phi_hat + b * phi_hat_sq
+    v = eye + b * phi_hat + c * phi_hat_sq
+    top = torch.cat([rotation, (v @ rho)[:, None]], dim=1)
+    bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=xi.dtype, device=xi.device)
+    return torch.cat([top, bottom], dim=0)

@@ -135,13 +135,13 @@ def default_camera(width: int, height: int) -> Camera:
 def loop_path(frame_count: int) -> np.ndarray:
     """``world_from_camera`` (N, 4, 4) along a smooth closed loop; the last frame is one step before the first.
 
-    The camera circles an ellipse of 0.6 x 0.4 m at 1.4 m height, looking across the room towards +x
-    with a yaw swing of +-35 degrees, so consecutive frames overlap and the end revisits the start.
+    The camera circles an ellipse of 0.4 x 0.25 m at 1.4 m height, looking across the room towards +x
+    with a yaw swing of +-25 degrees, so consecutive frames overlap and the end revisits the start.
     """
     poses = []
     for phase in np.arange(frame_count) / frame_count * 2.0 * np.pi:
-        eye = np.array([-0.8 + 0.6 * np.cos(phase), 0.4 * np.sin(phase), 1.4 + 0.1 * np.sin(2 * phase)])
-        yaw = np.deg2rad(35.0) * np.sin(phase)
+        eye = np.array([-0.8 + 0.4 * np.cos(phase), 0.25 * np.sin(phase), 1.4 + 0.05 * np.sin(2 * phase)])
+        yaw = np.deg2rad(25.0) * np.sin(phase)
         target = eye + np.array([np.cos(yaw), np.sin(yaw), -0.25 + 0.1 * np.cos(phase)])
         poses.append(look_at(eye, target))
     return np.stack(poses)

@@ -1,0 +1,198 @@
+"""``tambridge``: the command line, a thin click layer over pipelines/ and the library."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import tempfile
+from pathlib import Path
+
+import click
+
+from tambridge.errors import TambridgeError
+
+
+def _fail(error: Exception) -> None:
+    click.echo(f"error: {error}", err=True)
+    sys.exit(2)
+
+
+class _Group(click.Group):
+    """Turns tambridge's input errors into one line on stderr and exit status 2, never a traceback."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except TambridgeError as error:
+            _fail(error)
+
+
+@click.group(cls=_Group)
+@click.version_option(package_name="tambridge")
+def main() -> None:
+    """RGB-D SLAM and 3D Gaussian Splatting reconstruction that runs on a CPU."""
+    # Only warnings reach the terminal; run.log gets everything (RunLog lowers the tambridge logger to INFO).
+    root = logging.getLogger()
+    if not any(getattr(handler, "tambridge_console", False) for handler in root.handlers):
+        console = logging.StreamHandler()
+        console.tambridge_console = True
+        console.setLevel(logging.WARNING)
+        console.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        root.addHandler(console)
+
+
+def _print_run_summary(result) -> None:
+    trajectory_metrics = result.metrics.get("trajectory")
+    if trajectory_metrics:
+        click.echo(
+            f"ATE RMSE: {trajectory_metrics['ate_rmse_m'] * 100:.2f} cm over {trajectory_metrics['pose_count']} poses "
+            f"(SE(3)-aligned); RPE {trajectory_metrics['rpe_trans_rmse_m'] * 100:.2f} cm/frame"
+        )
+    click.echo(f"{result.metrics['frames']} frames at {result.metrics['fps_end_to_end']:.1f} frames/s")
+    click.echo(f"outputs: {result.output_dir}")
+
+
+def _run_options(function):
+    for option in reversed(
+        [
+            click.option("-o", "--output", "output_dir", type=click.Path(path_type=Path), required=True, help="Output folder."),
+            click.option("--config", "preset", type=click.Path(path_type=Path), help="YAML preset (configs/*.yaml)."),
+            click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override a config key, e.g. mapper.iterations=50."),
+            click.option("--max-frames", type=int, help="Use at most this many frames."),
+            click.option("--stride", type=int, help="Use every n-th frame."),
+            click.option("--camera", "camera_file", type=click.Path(path_type=Path), help="camera.yaml for a non-TUM camera."),
+            click.option("--quiet", is_flag=True, help="No progress bars."),
+        ]
+    ):
+        function = option(function)
+    return function
+
+
+def _resolve_config(preset, overrides, max_frames, stride, camera_file):
+    from tambridge.config import load_config
+
+    extra = list(overrides)
+    if max_frames is not None:
+        extra.append(f"input.max_frames={max_frames}")
+    if stride is not None:
+        extra.append(f"input.stride={stride}")
+    if camera_file is not None:
+        extra.append(f"input.camera_file={camera_file}")
+    return load_config(preset, extra)
+
+
+@main.command()
+@click.argument("sequence_dir", type=click.Path(path_type=Path))
+@_run_options
+def reconstruct(sequence_dir, output_dir, preset, overrides, max_frames, stride, camera_file, quiet) -> None:
+    """Track SEQUENCE_DIR (TUM layout) and write trajectory, splats, mesh and metrics to --output."""
+    from pipelines.reconstruct import reconstruct as run
+
+    config = _resolve_config(preset, overrides, max_frames, stride, camera_file)
+    _print_run_summary(run(sequence_dir, output_dir, config, progress=not quiet))
+
+
+@main.command()
+@click.option("-o", "--output", "output_dir", type=click.Path(path_type=Path), default=Path("out/demo"), show_default=True)
+@click.option("--frames", type=int, default=60, show_default=True)
+@click.option("--size", default="320x240", show_default=True, help="WIDTHxHEIGHT of the synthetic images.")
+@click.option("--config", "preset", type=click.Path(path_type=Path), help="YAML preset (configs/*.yaml).")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE")
+def demo(output_dir, frames, size, preset, overrides) -> None:
+    """Make a synthetic sequence with exact ground truth and reconstruct it: the quick check of an install."""
+    from pipelines.reconstruct import reconstruct as run
+    from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
+
+    width, height = _parse_size(size)
+    config = _resolve_config(preset, overrides, None, None, None)
+    with tempfile.TemporaryDirectory(prefix="tambridge-demo-") as temp:
+        sequence_dir = Path(temp) / "synthetic"
+        click.echo(f"rendering a {frames}-frame {width}x{height} synthetic sequence ...")
+        write_synthetic_sequence(sequence_dir, SynthOptions(frame_count=frames, width=width, height=height, seed=config.seed))
+        _print_run_summary(run(sequence_dir, output_dir, config))
+
+
+def _parse_size(size: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"{size!r}: expected WIDTHxHEIGHT, e.g. 160x120") from None
+    if width < 16 or height < 16:
+        raise click.BadParameter(f"{size!r}: images must be at least 16x16")
+    return width, height
+
+
+@main.command()
+@click.argument("output_dir", type=click.Path(path_type=Path))
+@click.option("--frames", type=int, default=30, show_default=True)
+@click.option("--size", default="160x120", show_default=True, help="WIDTHxHEIGHT.")
+@click.option("--depth-noise", type=float, default=0.0, help="Depth noise sigma at 1 m, metres (grows with z^2).")
+@click.option("--colour-noise", type=float, default=0.0, help="Colour noise sigma, in [0, 1] units.")
+@click.option("--motion-blur", type=int, default=1, help="Sub-frames averaged per frame (1 = none).")
+@click.option("--seed", type=int, default=0)
+def synth(output_dir, frames, size, depth_noise, colour_noise, motion_blur, seed) -> None:
+    """Write a synthetic TUM-layout sequence (textured room, closed loop) with exact ground truth."""
+    from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
+
+    width, height = _parse_size(size)
+    options = SynthOptions(frames, width, height, depth_noise_m=depth_noise, colour_noise=colour_noise,
+                           motion_blur_samples=motion_blur, seed=seed)
+    write_synthetic_sequence(output_dir, options)
+    click.echo(f"wrote {frames} frames to {output_dir}")
+
+
+@main.command()
+@click.argument("estimate", type=click.Path(path_type=Path))
+@click.argument("ground_truth", type=click.Path(path_type=Path))
+@click.option("--align", type=click.Choice(["se3", "sim3", "none"]), default="se3", show_default=True)
+@click.option("--plot", type=click.Path(path_type=Path), help="PNG to write (default: ESTIMATE with .png).")
+@click.option("--json", "json_path", type=click.Path(path_type=Path), help="Write the metrics as JSON here.")
+def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
+    """ATE and RPE of a TUM trajectory ESTIMATE against GROUND_TRUTH, with a plot."""
+    from tambridge.evaluation.plots import plot_trajectory_errors
+    from tambridge.evaluation.trajectory import evaluate_trajectory
+    from tambridge.export.atomic import atomic_write_text
+    from tambridge.trajectory import read_tum_trajectory
+
+    try:
+        errors = evaluate_trajectory(read_tum_trajectory(estimate), read_tum_trajectory(ground_truth), align)
+    except ValueError as error:
+        _fail(TambridgeError(f"{estimate}: {error}"))
+    summary = errors.summary()
+    rows = [
+        ("poses", f"{errors.pose_count}"),
+        ("alignment", align),
+        ("ATE RMSE", f"{errors.ate_rmse_m * 100:.3f} cm"),
+        ("ATE mean", f"{errors.ate_mean_m * 100:.3f} cm"),
+        ("ATE median", f"{errors.ate_median_m * 100:.3f} cm"),
+        ("ATE max", f"{errors.ate_max_m * 100:.3f} cm"),
+        ("RPE trans RMSE", f"{errors.rpe_trans_rmse_m * 100:.3f} cm/frame"),
+        ("RPE rot RMSE", f"{errors.rpe_rot_rmse_deg:.3f} deg/frame"),
+        ("scale", f"{errors.scale:.4f}"),
+    ]
+    width = max(len(name) for name, _ in rows)
+    for name, value in rows:
+        click.echo(f"{name:<{width}}  {value}")
+    plot = plot or Path(estimate).with_suffix(".png")
+    plot_trajectory_errors({Path(estimate).stem: errors}, plot, title=str(estimate))
+    click.echo(f"plot: {plot}")
+    if json_path:
+        atomic_write_text(json_path, json.dumps(summary, indent=2) + "\n")
+
+
+@main.command()
+@click.argument("name")
+@click.option("--to", "destination", type=click.Path(path_type=Path), default=Path("data"), show_default=True)
+@click.option("--base-url", default=None, help="Mirror of the TUM dataset folder (default: the TUM site).")
+def download(name, destination, base_url) -> None:
+    """Download and unpack a TUM RGB-D sequence, e.g. fr1/desk (needs internet)."""
+    from tambridge.io.download import TUM_BASE_URL, download_tum
+
+    folder = download_tum(name, destination, base_url or TUM_BASE_URL)
+    click.echo(f"sequence ready: {folder}")
+    click.echo(f"run: tambridge reconstruct {folder} -o out/{folder.name}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,105 @@
+"""``tambridge reconstruct``: sequence -> frontend -> (bridge -> mapper) -> exporters -> evaluation.
+
+Every output is written atomically; ``metrics.json`` is written last, so its presence says the run finished.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from tambridge.config import Config, to_yaml
+from tambridge.errors import TambridgeError
+from tambridge.evaluation.trajectory import evaluate_trajectory
+from tambridge.export.atomic import atomic_write_text
+from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
+from tambridge.io.tum import RgbdSequence, open_sequence
+from tambridge.runlog import RunLog, peak_memory_mb
+from tambridge.trajectory import Trajectory, write_tum_trajectory
+
+logger = logging.getLogger("tambridge.pipelines.reconstruct")
+
+
+@dataclasses.dataclass
+class ReconstructResult:
+    """What a run produced: the per-frame trajectory, the metrics written to metrics.json, the output folder."""
+
+    trajectory: Trajectory
+    keyframes: Trajectory
+    metrics: dict
+    output_dir: Path
+
+
+def track_sequence(sequence: RgbdSequence, config: Config, run_log: RunLog, progress: bool) -> tuple[Trajectory, Trajectory, dict]:
+    """Run the configured frontend over every frame: (per-frame trajectory, keyframe trajectory, frontend counters)."""
+    kind = config.frontend.kind
+    if kind != "open3d_f2f":
+        raise TambridgeError(f"frontend.kind={kind!r} is not available in this build; use open3d_f2f")
+    odometry = FrameToFrameOdometry(
+        sequence.camera, config.frontend.odometry_max_depth_m, config.frontend.odometry_depth_diff_max_m
+    )
+    poses = []
+    with run_log.stage("tracking"):
+        for frame in tqdm(sequence, total=len(sequence), desc="tracking", unit="frame", disable=not progress):
+            poses.append(odometry.track(frame))
+    trajectory = Trajectory(sequence.timestamps_s, np.stack(poses))
+    # Frame-to-frame odometry has no keyframe selection: every frame is its own keyframe.
+    return trajectory, trajectory, {"frames_lost": odometry.lost_frames}
+
+
+def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: bool = True) -> ReconstructResult:
+    """Reconstruct a TUM-layout sequence into ``output_dir`` (see DESIGN.md for the folder's contents)."""
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    for stale in ("metrics.json", "trajectory.txt", "keyframes.txt"):
+        # A re-run into the same folder must not leave an earlier run's results looking like this run's.
+        (output_dir / stale).unlink(missing_ok=True)
+    run_log = RunLog(output_dir / "run.log")
+    started = time.perf_counter()
+    try:
+        atomic_write_text(output_dir / "config.yaml", to_yaml(config))
+        logger.info("reconstructing %s into %s", sequence_dir, output_dir)
+        with run_log.stage("read"):
+            sequence = open_sequence(
+                sequence_dir,
+                camera_file=None if config.input.camera_file is None else Path(config.input.camera_file),
+                stride=config.input.stride,
+                max_frames=config.input.max_frames,
+            )
+        logger.info("%d frames, camera %s", len(sequence), sequence.camera)
+        trajectory, keyframes, counters = track_sequence(sequence, config, run_log, progress)
+        write_tum_trajectory(output_dir / "trajectory.txt", trajectory)
+        write_tum_trajectory(output_dir / "keyframes.txt", keyframes)
+        total_s = time.perf_counter() - started
+        metrics = {
+            "sequence": str(sequence_dir),
+            "frames": len(sequence),
+            "keyframes": len(keyframes),
+            "frontend": config.frontend.kind,
+            **counters,
+            "seconds_total": total_s,
+            "fps_end_to_end": len(sequence) / total_s,
+            "seconds_per_stage": dict(run_log.stage_seconds),
+            "fps_per_stage": {name: len(sequence) / max(s, 1e-9) for name, s in run_log.stage_seconds.items()},
+            "peak_memory_mb": peak_memory_mb(),
+            "warnings": run_log.warnings,
+            "trajectory": None,
+        }
+        if sequence.ground_truth is not None:
+            errors = evaluate_trajectory(trajectory, sequence.ground_truth, align="se3")
+            metrics["trajectory"] = errors.summary()
+            logger.info("ATE RMSE %.2f cm over %d poses (SE(3)-aligned)", errors.ate_rmse_m * 100, errors.pose_count)
+        atomic_write_text(output_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+        logger.info("finished in %.1f s", total_s)
+        return ReconstructResult(trajectory, keyframes, metrics, output_dir)
+    except BaseException as error:
+        run_log.record_stop(error)
+        raise
+    finally:
+        run_log.close()

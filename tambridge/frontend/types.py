@@ -1,0 +1,178 @@
+"""What the frontends hand to the rest of the pipeline, and their configs.
+
+Both frontends (:class:`~tambridge.frontend.orb_frontend.OrbFrontend` and
+:class:`~tambridge.frontend.open3d_frontend.Open3dFrontend`) follow :class:`Frontend`: ``track(frame)`` once
+per frame in order, ``keyframe_poses()`` at any time (poses after the latest loop correction), ``finish()``
+once at the end. All poses are 4x4 float64 ``world_from_camera``; the first frame's camera is the world
+frame unless the frontend is given another ``world_from_first_camera``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Protocol
+
+import numpy as np
+
+from tambridge.io.tum import Frame
+from tambridge.trajectory import Trajectory
+
+STAGES = ("features", "matching", "pnp", "local_ba", "loop", "global_ba")
+
+
+@dataclasses.dataclass(frozen=True)
+class OrbFrontendConfig:
+    """ORB RGB-D frontend settings; defaults are ORB-SLAM2's RGB-D values for a 640x480 Kinect.
+
+    Pixel radii are at pyramid level 0 and grow by ``scale_factor ** level`` for coarser keypoints.
+    """
+
+    # Features: cv2 ORB over a scale pyramid, bucketed on a grid per level so they cover the image.
+    n_features: int = 1500
+    scale_factor: float = 1.2
+    n_levels: int = 8
+    fast_threshold: int = 7
+    grid_cell_px: int = 32
+    # Keypoints nearer the border than this are not detected (ORB-SLAM: 19; smaller for tiny images).
+    edge_threshold_px: int = 19
+    min_depth_m: float = 0.1
+    max_depth_m: float = 8.0
+    # Points closer than this (ORB-SLAM's ThDepth = 40 baselines) are "close": their depth is trusted.
+    close_depth_m: float = 3.2
+    # RGB-D BA: depth enters as the virtual right-image coordinate u_R = u - bf/z (ORB-SLAM2), bf = baseline*fx.
+    virtual_baseline_m: float = 0.08
+    depth_residuals: bool = True
+    # Matching by projecting local-map points with the motion prior.
+    search_radius_px: float = 15.0
+    refine_radius_px: float = 4.0
+    max_hamming: int = 100
+    ratio: float = 0.8
+    local_map_keyframes: int = 12
+    # PnP-RANSAC and motion-only refinement.
+    pnp_reprojection_px: float = 4.0
+    pnp_iterations: int = 60
+    min_inliers: int = 30
+    relocalisation_min_inliers: int = 50
+    # Keyframe insertion (ORB-SLAM2): tracked-point ratio to the reference keyframe, frames since the last one.
+    keyframe_tracked_ratio: float = 0.75
+    keyframe_min_frames: int = 0
+    keyframe_max_frames: int = 30
+    min_new_points: int = 100
+    covisibility_min_shared: int = 15
+    # Local BA over the new keyframe and its best covisible keyframes.
+    local_ba_keyframes: int = 10
+    local_ba_iterations: int = 6
+    # Loop closure and global BA.
+    loop_closure: bool = True
+    vocabulary_path: str | None = None  # None: the vocabulary shipped in tambridge/frontend/data
+    loop_min_inliers: int = 40
+    loop_candidates: int = 3
+    loop_min_score_ratio: float = 0.75
+    loop_cooldown_keyframes: int = 10
+    global_ba: bool = True
+    global_ba_iterations: int = 10
+
+
+@dataclasses.dataclass(frozen=True)
+class Open3dFrontendConfig:
+    """Open3D frontend: hybrid RGB-D odometry to the last keyframe, a keyframe pose graph with verified loop edges."""
+
+    max_depth_m: float = 4.0
+    depth_diff_max_m: float = 0.07
+    keyframe_translation_m: float = 0.10
+    keyframe_rotation_deg: float = 10.0
+    keyframe_max_frames: int = 30
+    # Loop candidates: keyframes whose camera centres and viewing directions are close.
+    loop_radius_m: float = 0.5
+    loop_max_angle_deg: float = 30.0
+    loop_min_keyframe_gap: int = 5
+    loop_max_candidates: int = 2
+    # Verification by Open3D registration (point-to-plane ICP on voxel-downsampled clouds).
+    loop_voxel_m: float = 0.02
+    loop_icp_distance_m: float = 0.05
+    loop_min_fitness: float = 0.3
+    loop_max_rmse_m: float = 0.03
+    # Open3D global_optimization options (as in Open3D's reconstruction system).
+    edge_prune_threshold: float = 0.25
+    preference_loop_closure: float = 0.1
+
+
+@dataclasses.dataclass
+class KeyframeEvent:
+    """A new keyframe, as the Fusion Bridge needs it.
+
+    ``points_world_m`` (M, 3) are the map points matched in this keyframe at ``keypoints_px`` (M, 2), with
+    ``map_point_ids`` (M,) int64. ``shared_with_previous`` is M(i-1, i), the map points this keyframe shares
+    with the previous keyframe; ``previous_total`` is T(i-1, i), the matched map points of the previous
+    keyframe (paper eq. 3: selected if beta <= M < alpha * T). For the Open3D frontend the three arrays are
+    empty, ``shared_with_previous`` is 0 and ``previous_total`` is 0 (it has no sparse map).
+    """
+
+    keyframe_id: int
+    frame_index: int
+    timestamp_s: float
+    world_from_camera: np.ndarray
+    points_world_m: np.ndarray
+    keypoints_px: np.ndarray
+    map_point_ids: np.ndarray
+    shared_with_previous: int
+    previous_total: int
+
+
+@dataclasses.dataclass
+class TrackResult:
+    """Outcome of one ``track(frame)`` call.
+
+    ``tracked`` is False when the frame could not be localised; its pose is then the constant-velocity
+    prediction (and a warning was logged). ``loop_closed`` says keyframe poses moved: ask ``keyframe_poses()``.
+    """
+
+    frame_index: int
+    timestamp_s: float
+    world_from_camera: np.ndarray
+    tracked: bool
+    is_keyframe: bool
+    inlier_count: int
+    relocalised: bool = False
+    loop_closed: bool = False
+    keyframe: KeyframeEvent | None = None
+
+
+@dataclasses.dataclass
+class FrontendResult:
+    """Final poses after loop closure and global BA.
+
+    ``trajectory`` has every frame given to ``track`` (non-keyframes re-anchored to their reference keyframe
+    after corrections), ``tracked`` (N,) bool says which were localised; ``keyframe_trajectory`` the keyframes;
+    ``keyframe_poses`` keyframe id -> 4x4; ``keyframe_frame_indices`` keyframe id -> frame index.
+    ``map_points_world_m`` (P, 3), ``map_point_colours`` (P, 3) uint8 RGB and ``map_point_ids`` (P,) are the
+    good map points (empty for Open3D). ``timings_s`` holds seconds per stage (keys of :data:`STAGES`).
+    """
+
+    trajectory: Trajectory
+    tracked: np.ndarray
+    keyframe_trajectory: Trajectory
+    keyframe_poses: dict[int, np.ndarray]
+    keyframe_frame_indices: dict[int, int]
+    map_points_world_m: np.ndarray
+    map_point_colours: np.ndarray
+    map_point_ids: np.ndarray
+    timings_s: dict[str, float]
+    frames_lost: int
+    frames_relocalised: int
+    loops_closed: int
+
+
+class Frontend(Protocol):
+    """What the pipeline and the Fusion Bridge call."""
+
+    def track(self, frame: Frame) -> TrackResult: ...
+
+    def keyframe_poses(self) -> dict[int, np.ndarray]: ...
+
+    def finish(self) -> FrontendResult: ...
+
+
+def empty_timings() -> dict[str, float]:
+    """A timing dict with every stage at zero seconds."""
+    return {stage: 0.0 for stage in STAGES}

@@ -1,0 +1,132 @@
+"""What the rasteriser takes and gives: isotropic Gaussians, their screen-space projection, the rendered maps.
+
+The image model (TAMBRIDGE paper, Sec. 3.4; SplaTAM's simplification of 3DGS):
+
+- a Gaussian ``i`` has a mean ``mu_i`` (world, metres), an RGB colour ``c_i`` in [0, 1], an isotropic radius
+  ``r_i`` (metres, stored as its log) and an opacity ``o_i = sigmoid(opacity_logit_i)``;
+- it projects to the pixel ``mu2D_i = K mu_cam_i / d_i`` with the radius ``r2D_i = f r_i / d_i`` pixels, where
+  ``d_i`` is the camera-frame depth z of its mean and ``f = (fx + fy) / 2`` (one focal length, so the splat stays
+  a circle; for fx != fy this is the paper's "f", not the anisotropic EWA footprint gsplat computes);
+- at a pixel ``p`` (pixel centres at integer coordinates, OpenCV convention) it has the weight
+  ``alpha_i(p) = min(ALPHA_MAX, o_i exp(-|p - mu2D_i|^2 / (2 r2D_i^2)))``, and 0 outside ``SIGMA_CUTOFF`` radii;
+- Gaussians are composited front to back by ``d_i``: with ``T_i = prod_{j<i} (1 - alpha_j)``,
+  ``C(p) = sum_i c_i alpha_i T_i + T_final * background``, ``D(p) = sum_i d_i alpha_i T_i`` and the silhouette
+  (border mask) ``M_b(p) = sum_i alpha_i T_i = 1 - T_final``;
+- compositing stops before the first Gaussian that would bring the transmittance below ``TRANSMITTANCE_MIN``
+  (that Gaussian and all behind it are left out, exactly as 3DGS does), and Gaussians with ``d_i <= NEAR_PLANE_M``
+  are skipped.
+
+``D`` is *not* normalised by the silhouette (as in SplaTAM): where ``M_b < 1`` it is smaller than the surface
+depth; divide by ``silhouette`` where a normalised depth is wanted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from tambridge.camera import Camera
+from tambridge.geometry import exp_se3_torch
+
+NEAR_PLANE_M = 0.01
+"""Gaussians whose camera-frame depth is at most this are not rendered."""
+SIGMA_CUTOFF = 3.0
+"""A Gaussian touches only the pixels within this many 2D radii of its projected mean."""
+ALPHA_MAX = 0.99
+"""Per-Gaussian alpha is clamped here (3DGS), which keeps ``1 / (1 - alpha)`` finite in the backward pass."""
+TRANSMITTANCE_MIN = 1e-4
+"""Compositing stops before a Gaussian that would bring the transmittance below this."""
+
+
+@dataclasses.dataclass
+class GaussianTensors:
+    """Activated parameters of N isotropic Gaussians, all torch tensors on one device and of one float dtype.
+
+    means_m: (N, 3) world-frame means, metres. rgb: (N, 3) colours in [0, 1]. log_radii_m: (N,) natural log
+    of the radius in metres. opacity_logits: (N,) logits of the opacity (opacity = sigmoid(logit)).
+    """
+
+    means_m: torch.Tensor
+    rgb: torch.Tensor
+    log_radii_m: torch.Tensor
+    opacity_logits: torch.Tensor
+
+    def __post_init__(self) -> None:
+        count = self.means_m.shape[0]
+        assert self.means_m.shape == (count, 3), self.means_m.shape
+        assert self.rgb.shape == (count, 3), self.rgb.shape
+        assert self.log_radii_m.shape == (count,), self.log_radii_m.shape
+        assert self.opacity_logits.shape == (count,), self.opacity_logits.shape
+
+    def __len__(self) -> int:
+        return self.means_m.shape[0]
+
+
+@dataclasses.dataclass
+class ScreenGaussians:
+    """Gaussians projected into one camera, differentiable w.r.t. the GaussianTensors and the pose.
+
+    means_px: (N, 2) projected means (u, v), pixels. radii_px: (N,) 2D radii, pixels. depths_m: (N,)
+    camera-frame z, metres (<= NEAR_PLANE_M for Gaussians to skip; their other fields are finite but
+    meaningless). opacity: (N,) in (0, 1). rgb: (N, 3).
+    """
+
+    means_px: torch.Tensor
+    radii_px: torch.Tensor
+    depths_m: torch.Tensor
+    opacity: torch.Tensor
+    rgb: torch.Tensor
+
+
+@dataclasses.dataclass
+class RenderOutput:
+    """Rendered maps of one view. rgb: (H, W, 3). depth_m: (H, W), unnormalised (see module doc). silhouette: (H, W) in [0, 1]."""
+
+    rgb: torch.Tensor
+    depth_m: torch.Tensor
+    silhouette: torch.Tensor
+
+
+def camera_from_world_tensor(world_from_camera: torch.Tensor, pose_delta: torch.Tensor | None) -> torch.Tensor:
+    """(4, 4) float64 ``camera_from_world`` of ``world_from_camera @ exp_se3(pose_delta)``.
+
+    ``pose_delta`` (6,) is a right perturbation ``(rho, phi)`` in the camera frame; gradients flow to it.
+    """
+    world_from_camera = torch.as_tensor(world_from_camera).to(torch.float64)
+    assert world_from_camera.shape == (4, 4), world_from_camera.shape
+    if pose_delta is not None:
+        assert pose_delta.shape == (6,), pose_delta.shape
+        world_from_camera = world_from_camera.to(pose_delta.device) @ exp_se3_torch(pose_delta.to(torch.float64))
+    rotation_t = world_from_camera[:3, :3].T
+    top = torch.cat([rotation_t, -(rotation_t @ world_from_camera[:3, 3:4])], dim=1)
+    bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=torch.float64, device=top.device)
+    return torch.cat([top, bottom], dim=0)
+
+
+def camera_frame_means(
+    gaussians: GaussianTensors, world_from_camera: torch.Tensor, pose_delta: torch.Tensor | None = None
+) -> torch.Tensor:
+    """(N, 3) means in the camera frame of ``world_from_camera @ exp_se3(pose_delta)``, dtype of the means."""
+    camera_from_world = camera_from_world_tensor(world_from_camera, pose_delta).to(gaussians.means_m)
+    return gaussians.means_m @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]
+
+
+def project_to_screen(gaussians: GaussianTensors, means_cam_m: torch.Tensor, camera: Camera) -> ScreenGaussians:
+    """Project camera-frame means ``(N, 3)`` and radii to pixels: ``mu2D = K mu_cam / d``, ``r2D = f r / d``."""
+    depths = means_cam_m[:, 2]
+    # Behind-the-near-plane Gaussians get a stand-in depth of 1 so that nothing here is inf or NaN (a NaN
+    # would leak into the gradients through the chain rule even though the rasteriser skips them).
+    safe_depths = torch.where(depths > NEAR_PLANE_M, depths, torch.ones_like(depths))
+    focal = 0.5 * (camera.fx + camera.fy)
+    means_px = torch.stack(
+        [camera.fx * means_cam_m[:, 0] / safe_depths + camera.cx, camera.fy * means_cam_m[:, 1] / safe_depths + camera.cy],
+        dim=1,
+    )
+    return ScreenGaussians(
+        means_px=means_px,
+        radii_px=focal * torch.exp(gaussians.log_radii_m) / safe_depths,
+        depths_m=depths,
+        opacity=torch.sigmoid(gaussians.opacity_logits),
+        rgb=gaussians.rgb,
+    )

@@ -1,0 +1,41 @@
+import numpy as np
+import pytest
+
+from tambridge.geometry import exp_se3, inverse, log_se3, look_at, pose_from_tum, tum_from_pose
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 0.3, 3.0])
+def test_exp_log_round_trip(angle):
+    rng = np.random.default_rng(1)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    twist = np.concatenate([rng.normal(size=3), axis * angle])
+    transform = exp_se3(twist)
+    np.testing.assert_allclose(transform[:3, :3] @ transform[:3, :3].T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(log_se3(transform), twist, atol=1e-9)
+
+
+def test_exp_matches_matrix_exponential():
+    from scipy.linalg import expm
+
+    twist = np.array([0.1, -0.2, 0.3, 0.4, -0.1, 0.2])
+    generator = np.zeros((4, 4))
+    generator[:3, :3] = np.array([[0, -twist[5], twist[4]], [twist[5], 0, -twist[3]], [-twist[4], twist[3], 0]])
+    generator[:3, 3] = twist[:3]
+    np.testing.assert_allclose(exp_se3(twist), expm(generator), atol=1e-12)
+
+
+def test_inverse_and_tum_round_trip():
+    transform = exp_se3(np.array([0.5, 0.1, -0.3, 0.2, 0.7, -0.4]))
+    np.testing.assert_allclose(inverse(transform) @ transform, np.eye(4), atol=1e-12)
+    position, quaternion = tum_from_pose(transform)
+    assert quaternion[3] >= 0
+    np.testing.assert_allclose(pose_from_tum(position, quaternion), transform, atol=1e-12)
+
+
+def test_look_at_points_the_optical_axis_at_the_target():
+    world_from_camera = look_at(np.array([1.0, 2.0, 1.5]), np.array([3.0, 2.0, 1.5]))
+    target_camera = inverse(world_from_camera) @ np.array([3.0, 2.0, 1.5, 1.0])
+    np.testing.assert_allclose(target_camera[:3], [0.0, 0.0, 2.0], atol=1e-12)
+    # Image "down" (camera +y) is world -z when up is +z.
+    np.testing.assert_allclose(world_from_camera[:3, 1], [0.0, 0.0, -1.0], atol=1e-12)

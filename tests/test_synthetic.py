@@ -1,0 +1,56 @@
+import numpy as np
+
+from tambridge.geometry import inverse, transform_points
+from tambridge.io.tum import open_sequence
+
+
+def _back_project(depth_m, camera):
+    rows, columns = np.nonzero(depth_m > 0)
+    z = depth_m[rows, columns].astype(np.float64)
+    points = np.stack([(columns - camera.cx) / camera.fx * z, (rows - camera.cy) / camera.fy * z, z], axis=1)
+    return points, np.stack([columns, rows], axis=1).astype(np.float64)
+
+
+def _project(points, camera):
+    return np.stack([points[:, 0] / points[:, 2] * camera.fx + camera.cx, points[:, 1] / points[:, 2] * camera.fy + camera.cy], axis=1)
+
+
+def test_depth_reprojects_onto_the_neighbour_within_a_pixel(synthetic_sequence_dir):
+    """Pixels of frame i go to frame i+1 with ground-truth poses, back through i+1's depth, and land within 1 px."""
+    sequence = open_sequence(synthetic_sequence_dir)
+    camera = sequence.camera
+    for index in (0, 10, 20):
+        frame_a, frame_b = sequence[index], sequence[index + 1]
+        pose_a = sequence.ground_truth.pose_at(frame_a.timestamp_s)
+        pose_b = sequence.ground_truth.pose_at(frame_b.timestamp_s)
+        points_a, pixels_a = _back_project(frame_a.depth_m, camera)
+        points_b = transform_points(inverse(pose_b) @ pose_a, points_a)
+        pixels_b = _project(points_b, camera)
+        columns, rows = np.round(pixels_b).astype(int).T
+        inside = (columns >= 0) & (columns < camera.width) & (rows >= 0) & (rows < camera.height)
+        depth_b = np.zeros(len(points_b))
+        depth_b[inside] = frame_b.depth_m[rows[inside], columns[inside]]
+        # Visible in b: the depth b sees there agrees with the transformed point (not occluded, not off an edge).
+        visible = inside & (np.abs(depth_b - points_b[:, 2]) < 0.02 * points_b[:, 2])
+        assert visible.mean() > 0.6
+        # Depth stored at 1/5000 m and rounding to the pixel grid cost well under a pixel; a pose error would not.
+        depth_at = frame_b.depth_m[rows[visible], columns[visible]].astype(np.float64)
+        points_b_measured = np.stack(
+            [(columns[visible] - camera.cx) / camera.fx * depth_at, (rows[visible] - camera.cy) / camera.fy * depth_at, depth_at], axis=1
+        )
+        pixels_back = _project(transform_points(inverse(pose_a) @ pose_b, points_b_measured), camera)
+        error_px = np.linalg.norm(pixels_back - pixels_a[visible], axis=1)
+        assert np.median(error_px) < 0.5
+        assert np.percentile(error_px, 95) < 1.0
+
+
+def test_ground_truth_is_a_closed_loop_and_colour_is_textured(synthetic_sequence_dir):
+    sequence = open_sequence(synthetic_sequence_dir)
+    positions = sequence.ground_truth.positions_m
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    # The end is one step from the start: a loop closure can find it.
+    assert np.linalg.norm(positions[-1] - positions[0]) < 2 * steps.max()
+    assert len(sequence) == 30 and sequence.camera.width == 160
+    frame = sequence[0]
+    assert (frame.depth_m > 0).all() and 0.5 < np.median(frame.depth_m) < 6.0
+    assert frame.rgb.std() > 20

@@ -1,0 +1,85 @@
+import numpy as np
+import pytest
+
+from tambridge.errors import TrajectoryFormatError
+from tambridge.evaluation.trajectory import ate_rmse_m, evaluate_trajectory
+from tambridge.geometry import exp_se3
+from tambridge.io.synthetic import loop_path
+from tambridge.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
+
+
+def _reference(count=50) -> Trajectory:
+    return Trajectory(np.arange(count) / 30.0, loop_path(count))
+
+
+def test_tum_round_trip(tmp_path):
+    reference = _reference()
+    write_tum_trajectory(tmp_path / "t.txt", reference)
+    loaded = read_tum_trajectory(tmp_path / "t.txt")
+    np.testing.assert_allclose(loaded.timestamps_s, reference.timestamps_s, atol=1e-6)
+    np.testing.assert_allclose(loaded.world_from_camera, reference.world_from_camera, atol=1e-8)
+
+
+def test_ate_of_a_known_perturbation_equals_its_rms():
+    reference = _reference()
+    rng = np.random.default_rng(3)
+    offsets = rng.normal(0.0, 0.02, size=(len(reference), 3))
+    offsets -= offsets.mean(axis=0)  # a zero-mean perturbation is not absorbed by alignment's translation
+    perturbed = reference.world_from_camera.copy()
+    perturbed[:, :3, 3] += offsets
+    expected = np.sqrt(np.mean(np.sum(offsets**2, axis=1)))
+    estimate = Trajectory(reference.timestamps_s, perturbed)
+    assert ate_rmse_m(estimate, reference, align="none") == pytest.approx(expected, rel=1e-9)
+    # A rigid motion of the whole estimate is removed by SE(3) alignment (up to the noise it can fit).
+    moved = Trajectory(reference.timestamps_s, exp_se3(np.array([1.0, -2.0, 0.5, 0.3, -0.2, 1.0])) @ perturbed)
+    assert ate_rmse_m(moved, reference, align="none") > 0.5
+    assert ate_rmse_m(moved, reference, align="se3") == pytest.approx(expected, rel=0.05)
+
+
+def test_sim3_alignment_recovers_a_known_scale():
+    reference = _reference()
+    scaled = reference.world_from_camera.copy()
+    scaled[:, :3, 3] *= 0.37
+    moved = exp_se3(np.array([0.2, 0.1, -0.4, 0.5, 0.0, -0.3])) @ scaled
+    errors = evaluate_trajectory(Trajectory(reference.timestamps_s, moved), reference, align="sim3")
+    assert errors.scale == pytest.approx(1 / 0.37, rel=1e-6)
+    assert errors.ate_rmse_m < 1e-9
+    assert evaluate_trajectory(Trajectory(reference.timestamps_s, moved), reference, align="se3").ate_rmse_m > 0.05
+
+
+def test_rpe_of_a_constant_step_error():
+    reference = _reference()
+    drifted = reference.world_from_camera.copy()
+    # Each relative motion gains 1 mm along the camera x axis: RPE is exactly 1 mm per frame.
+    relative = [np.linalg.inv(a) @ b for a, b in zip(reference.world_from_camera[:-1], reference.world_from_camera[1:])]
+    step_error = np.eye(4)
+    step_error[0, 3] = 0.001
+    for index, motion in enumerate(relative, start=1):
+        drifted[index] = drifted[index - 1] @ motion @ step_error
+    errors = evaluate_trajectory(Trajectory(reference.timestamps_s, drifted), reference, align="none")
+    assert errors.rpe_trans_rmse_m == pytest.approx(0.001, rel=1e-6)
+
+
+def test_association_skips_poses_without_a_partner():
+    reference = _reference()
+    estimate = Trajectory(reference.timestamps_s[::2] + 0.004, reference.world_from_camera[::2])
+    errors = evaluate_trajectory(estimate, reference, align="none")
+    assert errors.pose_count == len(reference.timestamps_s[::2])
+    assert errors.ate_rmse_m < 1e-9
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("1.0 0 0 0 0 0 0\n", "line 1: expected 8 columns"),
+        ("1.0 0 0 0 0 0 0 x\n", "line 1"),
+        ("# only a comment\n", "no poses"),
+        ("1.0 0 0 0 0 0 0 0\n", "zero quaternion"),
+        ("1.0 nan 0 0 0 0 0 1\n", "non-finite"),
+    ],
+)
+def test_malformed_trajectory_files_name_the_line(tmp_path, text, message):
+    path = tmp_path / "bad.txt"
+    path.write_text(text)
+    with pytest.raises(TrajectoryFormatError, match=message):
+        read_tum_trajectory(path)

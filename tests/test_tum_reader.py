@@ -1,0 +1,160 @@
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from tambridge.camera import TUM_PRESETS, find_sensor
+from tambridge.errors import CameraConfigError, SequenceFormatError
+from tambridge.io.tum import associate, open_sequence
+
+
+def test_association_matches_nearest_stamps_within_20_ms():
+    rgb = np.array([1.000, 1.033, 1.066, 1.100, 1.200])
+    depth = np.array([0.990, 1.040, 1.045, 1.070, 1.300])
+    # 1.000-0.990 (10 ms), 1.033-1.040 (7 ms; 1.045 is 12 ms), 1.066-1.070 (4 ms); 1.100 and 1.200 have no partner.
+    assert associate(rgb, depth) == [(0, 0), (1, 1), (2, 3)]
+
+
+def test_association_uses_each_stamp_once():
+    # Both colour stamps are nearest to depth 1.010; the closer pair (2 ms) wins and 1.000 takes 1.015 (15 ms).
+    assert associate(np.array([1.000, 1.012]), np.array([1.010, 1.015])) == [(0, 1), (1, 0)]
+    assert associate(np.array([1.000, 1.012]), np.array([1.010])) == [(1, 0)]
+
+
+def _write_sequence(folder, depth_raw, camera_text=None, rgb_stamps=(1.0, 2.0), depth_stamps=(1.005, 2.005)):
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    rgb_lines, depth_lines = [], []
+    for stamp in rgb_stamps:
+        cv2.imwrite(str(folder / f"rgb/{stamp}.png"), np.full((depth_raw.shape[0], depth_raw.shape[1], 3), 100, np.uint8))
+        rgb_lines.append(f"{stamp} rgb/{stamp}.png")
+    for stamp in depth_stamps:
+        cv2.imwrite(str(folder / f"depth/{stamp}.png"), depth_raw)
+        depth_lines.append(f"{stamp} depth/{stamp}.png")
+    (folder / "rgb.txt").write_text("# colour\n" + "\n".join(rgb_lines) + "\n")
+    (folder / "depth.txt").write_text("# depth\n" + "\n".join(depth_lines) + "\n")
+    if camera_text is not None:
+        (folder / "camera.txt").write_text(camera_text)
+
+
+CAMERA_8x6 = "width 8\nheight 6\nfx 10\nfy 10\ncx 3.5\ncy 2.5\n"
+
+
+def test_tum_depth_is_scaled_by_5000(tmp_path):
+    raw = np.full((6, 8), 10000, np.uint16)
+    raw[0, 0] = 0
+    _write_sequence(tmp_path / "seq", raw, CAMERA_8x6)
+    frame = open_sequence(tmp_path / "seq")[0]
+    assert frame.depth_m.dtype == np.float32
+    assert frame.depth_m[1, 1] == pytest.approx(2.0)
+    assert frame.depth_m[0, 0] == 0.0
+    assert frame.rgb.shape == (6, 8, 3) and frame.rgb.dtype == np.uint8
+
+
+def test_millimetre_depth_with_invalid_value_from_camera_txt(tmp_path):
+    raw = np.full((6, 8), 1500, np.uint16)
+    raw[2, 3] = 65535
+    _write_sequence(tmp_path / "seq", raw, CAMERA_8x6 + "depth_scale 1000\ndepth_invalid 65535\n")
+    frame = open_sequence(tmp_path / "seq")[0]
+    assert frame.depth_m[0, 0] == pytest.approx(1.5)
+    assert frame.depth_m[2, 3] == 0.0
+
+
+def test_stride_and_max_frames(synthetic_sequence_dir):
+    sequence = open_sequence(synthetic_sequence_dir, stride=3, max_frames=4)
+    assert len(sequence) == 4
+    np.testing.assert_allclose(sequence.timestamps_s, np.arange(0, 12, 3) / 30.0)
+
+
+def test_tum_preset_from_folder_name_and_undistortion(tmp_path):
+    assert find_sensor(tmp_path / "rgbd_dataset_freiburg2_xyz") is TUM_PRESETS["fr2"]
+    folder = tmp_path / "rgbd_dataset_freiburg1_test"
+    raw = np.full((480, 640), 10000, np.uint16)
+    _write_sequence(folder, raw)
+    image = np.zeros((480, 640, 3), np.uint8)
+    image[:, ::40] = 255  # vertical lines: distortion bends the ones near the border
+    cv2.imwrite(str(folder / "rgb/1.0.png"), image)
+    sequence = open_sequence(folder)
+    assert sequence.camera.distortion == (0.0,) * 5 and sequence.sensor.camera.has_distortion
+    undistorted = sequence[0].rgb
+    assert not np.array_equal(undistorted[:, :, 0] > 128, image[:, :, 0] > 128)
+    # The principal point moves least: the line through the centre column stays within a pixel.
+    assert undistorted[255, 319:322, 0].max() > 100
+
+
+def test_seven_scenes_style_folder_loads_without_flags(tmp_path):
+    raw = np.full((6, 8), 2000, np.uint16)
+    _write_sequence(tmp_path / "kitchen", raw, CAMERA_8x6 + "depth_scale 1000.0\ndepth_invalid 65535\n",
+                    rgb_stamps=(0.0, 0.033333), depth_stamps=(0.0, 0.033333))
+    sequence = open_sequence(tmp_path / "kitchen")
+    assert len(sequence) == 2 and sequence.sensor.depth_scale == 1000.0
+    assert sequence[1].depth_m[0, 0] == pytest.approx(2.0)
+
+
+# ---- bad input: one clear error each, naming the file ----
+
+
+def test_missing_rgb_txt(tmp_path):
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
+    (tmp_path / "seq" / "rgb.txt").unlink()
+    with pytest.raises(SequenceFormatError, match=r"rgb\.txt: not found"):
+        open_sequence(tmp_path / "seq")
+
+
+def test_timestamps_with_no_match(tmp_path):
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6, depth_stamps=(5.0, 6.0))
+    with pytest.raises(SequenceFormatError, match=r"rgb\.txt: no colour timestamp lies within 0\.02 s"):
+        open_sequence(tmp_path / "seq")
+
+
+@pytest.mark.parametrize("content, message", [(b"", "empty file"), (b"\x89PNG\r\n\x1a\nnot really", "cannot decode")])
+def test_corrupt_or_empty_png(tmp_path, content, message):
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
+    (tmp_path / "seq" / "depth" / "2.005.png").write_bytes(content)
+    sequence = open_sequence(tmp_path / "seq")
+    with pytest.raises(SequenceFormatError, match=rf"2\.005\.png: {message}"):
+        sequence[1]
+
+
+def test_eight_bit_depth(tmp_path):
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 100, np.uint8), CAMERA_8x6)
+    with pytest.raises(SequenceFormatError, match=r"1\.005\.png: depth must be a single-channel 16-bit PNG"):
+        open_sequence(tmp_path / "seq")
+
+
+def test_implausible_depth_scale(tmp_path):
+    # A scale of 1 puts a 2 m wall (2000 mm) at 2 km.
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 2000, np.uint16), CAMERA_8x6 + "depth_scale 1\n")
+    with pytest.raises(SequenceFormatError, match=r"1\.005\.png: median depth is 2e\+03 m .*set depth_scale"):
+        open_sequence(tmp_path / "seq")
+
+
+def test_folder_that_is_not_a_sequence(tmp_path):
+    (tmp_path / "photos").mkdir()
+    with pytest.raises(SequenceFormatError, match="not a sequence folder"):
+        open_sequence(tmp_path / "photos")
+    with pytest.raises(SequenceFormatError, match="not a folder"):
+        open_sequence(tmp_path / "missing")
+
+
+def test_unknown_camera_without_camera_file(tmp_path):
+    _write_sequence(tmp_path / "mycam", np.full((6, 8), 10000, np.uint16))
+    with pytest.raises(CameraConfigError, match="pass --camera camera.yaml"):
+        open_sequence(tmp_path / "mycam")
+
+
+def test_image_size_mismatch_mid_sequence(tmp_path):
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
+    cv2.imwrite(str(tmp_path / "seq" / "rgb" / "2.0.png"), np.zeros((5, 8, 3), np.uint8))
+    sequence = open_sequence(tmp_path / "seq")
+    with pytest.raises(SequenceFormatError, match=r"2\.0\.png: image is 8x5 but the camera is 8x6"):
+        sequence[1]
+
+
+def test_garbage_index_line_names_the_line(tmp_path):
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
+    with open(tmp_path / "seq" / "rgb.txt", "a") as index:
+        index.write("not-a-number rgb/x.png\n")
+    with pytest.raises(SequenceFormatError, match=r"rgb\.txt line 4: timestamp 'not-a-number' is not a number"):
+        open_sequence(tmp_path / "seq")
