@@ -11,14 +11,14 @@ import logging
 import time
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
-from tambridge.config import Config, to_yaml
-from tambridge.errors import TambridgeError
+from tambridge.camera import Camera
+from tambridge.config import Config, ConfigError, to_yaml
 from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.export.atomic import atomic_write_text
 from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
+from tambridge.frontend.types import Frontend, FrontendResult
 from tambridge.io.tum import RgbdSequence, open_sequence
 from tambridge.runlog import RunLog, peak_memory_mb
 from tambridge.trajectory import Trajectory, write_tum_trajectory
@@ -36,21 +36,20 @@ class ReconstructResult:
     output_dir: Path
 
 
-def track_sequence(sequence: RgbdSequence, config: Config, run_log: RunLog, progress: bool) -> tuple[Trajectory, Trajectory, dict]:
-    """Run the configured frontend over every frame: (per-frame trajectory, keyframe trajectory, frontend counters)."""
+def make_frontend(config: Config, camera: Camera) -> Frontend:
+    """The frontend named by ``config.frontend.kind``."""
     kind = config.frontend.kind
-    if kind != "open3d_f2f":
-        raise TambridgeError(f"frontend.kind={kind!r} is not available in this build; use open3d_f2f")
-    odometry = FrameToFrameOdometry(
-        sequence.camera, config.frontend.odometry_max_depth_m, config.frontend.odometry_depth_diff_max_m
-    )
-    poses = []
+    if kind == "open3d_f2f":
+        return FrameToFrameOdometry(camera, config.frontend.odometry_max_depth_m, config.frontend.odometry_depth_diff_max_m)
+    raise ConfigError(f"frontend.kind={kind!r}: expected one of open3d_f2f")
+
+
+def track_sequence(sequence: RgbdSequence, frontend: Frontend, run_log: RunLog, progress: bool) -> FrontendResult:
+    """Feed every frame to the frontend in order; returns its final result (after loop closure and global BA)."""
     with run_log.stage("tracking"):
         for frame in tqdm(sequence, total=len(sequence), desc="tracking", unit="frame", disable=not progress):
-            poses.append(odometry.track(frame))
-    trajectory = Trajectory(sequence.timestamps_s, np.stack(poses))
-    # Frame-to-frame odometry has no keyframe selection: every frame is its own keyframe.
-    return trajectory, trajectory, {"frames_lost": odometry.lost_frames}
+            frontend.track(frame)
+        return frontend.finish()
 
 
 def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: bool = True) -> ReconstructResult:
@@ -73,7 +72,8 @@ def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: 
                 max_frames=config.input.max_frames,
             )
         logger.info("%d frames, camera %s", len(sequence), sequence.camera)
-        trajectory, keyframes, counters = track_sequence(sequence, config, run_log, progress)
+        tracking = track_sequence(sequence, make_frontend(config, sequence.camera), run_log, progress)
+        trajectory, keyframes = tracking.trajectory, tracking.keyframe_trajectory
         write_tum_trajectory(output_dir / "trajectory.txt", trajectory)
         write_tum_trajectory(output_dir / "keyframes.txt", keyframes)
         total_s = time.perf_counter() - started
@@ -82,7 +82,10 @@ def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: 
             "frames": len(sequence),
             "keyframes": len(keyframes),
             "frontend": config.frontend.kind,
-            **counters,
+            "frames_lost": tracking.frames_lost,
+            "frames_relocalised": tracking.frames_relocalised,
+            "loops_closed": tracking.loops_closed,
+            "frontend_seconds_per_stage": tracking.timings_s,
             "seconds_total": total_s,
             "fps_end_to_end": len(sequence) / total_s,
             "seconds_per_stage": dict(run_log.stage_seconds),

@@ -7,13 +7,16 @@ bound; this is what users get from Open3D's odometry alone and what our frontend
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 import open3d as o3d
 
 from tambridge.camera import Camera
 from tambridge.geometry import inverse
+from tambridge.frontend.types import FrontendResult, KeyframeEvent, TrackResult, empty_timings
 from tambridge.io.tum import Frame
+from tambridge.trajectory import Trajectory
 
 logger = logging.getLogger("tambridge.frontend.open3d_odometry")
 
@@ -60,38 +63,103 @@ def odometry_step(
 class FrameToFrameOdometry:
     """Chains frame-to-frame odometry into ``world_from_camera`` poses; the first frame is the world frame.
 
-    A failed registration keeps the constant-velocity prediction and is counted in ``lost_frames``, with a warning.
+    Follows the :class:`~tambridge.frontend.types.Frontend` protocol so it can stand in for the other
+    frontends. It has no map, so its keyframes (chosen by motion since the last one, for the mapper's sake)
+    carry empty matched-point arrays and nothing is ever corrected. A failed registration keeps the
+    constant-velocity prediction, is counted as lost and logged as a warning.
     """
 
-    def __init__(self, camera: Camera, max_depth_m: float = 4.0, depth_diff_max_m: float = 0.07) -> None:
+    def __init__(
+        self,
+        camera: Camera,
+        max_depth_m: float = 4.0,
+        depth_diff_max_m: float = 0.07,
+        keyframe_translation_m: float = 0.10,
+        keyframe_rotation_deg: float = 10.0,
+    ) -> None:
         self.camera = camera
         self.max_depth_m = max_depth_m
         self.depth_diff_max_m = depth_diff_max_m
-        self.lost_frames = 0
+        self.keyframe_translation_m = keyframe_translation_m
+        self.keyframe_rotation_deg = keyframe_rotation_deg
         self._previous: o3d.geometry.RGBDImage | None = None
         self._world_from_previous = np.eye(4)
         self._previous_from_current_motion = np.eye(4)
+        self._poses: list[np.ndarray] = []
+        self._timestamps: list[float] = []
+        self._tracked: list[bool] = []
+        self._keyframe_poses: dict[int, np.ndarray] = {}
+        self._keyframe_frame_indices: dict[int, int] = {}
+        self._keyframe_timestamps: dict[int, float] = {}
+        self._seconds = 0.0
 
-    def track(self, frame: Frame) -> np.ndarray:
-        """``world_from_camera`` (4, 4) of this frame."""
+    def track(self, frame: Frame) -> TrackResult:
+        started = time.perf_counter()
         current = to_open3d_rgbd(frame, self.max_depth_m)
-        if self._previous is None:
-            self._previous = current
-            return self._world_from_previous.copy()
-        success, current_from_previous, _ = odometry_step(
-            self._previous,
-            current,
-            self.camera,
-            inverse(self._previous_from_current_motion),
-            self.max_depth_m,
-            self.depth_diff_max_m,
-        )
-        if success:
-            self._previous_from_current_motion = inverse(current_from_previous)
-        else:
-            self.lost_frames += 1
-            logger.warning("frame %d (t=%.6f): RGB-D odometry failed; keeping the constant-velocity prediction",
-                           frame.index, frame.timestamp_s)
-        self._world_from_previous = self._world_from_previous @ self._previous_from_current_motion
+        success = True
+        if self._previous is not None:
+            success, current_from_previous, _ = odometry_step(
+                self._previous,
+                current,
+                self.camera,
+                inverse(self._previous_from_current_motion),
+                self.max_depth_m,
+                self.depth_diff_max_m,
+            )
+            if success:
+                self._previous_from_current_motion = inverse(current_from_previous)
+            else:
+                logger.warning("frame %d (t=%.6f): RGB-D odometry failed; keeping the constant-velocity prediction",
+                               frame.index, frame.timestamp_s)
+            self._world_from_previous = self._world_from_previous @ self._previous_from_current_motion
         self._previous = current
-        return self._world_from_previous.copy()
+        world_from_camera = self._world_from_previous.copy()
+        self._poses.append(world_from_camera)
+        self._timestamps.append(frame.timestamp_s)
+        self._tracked.append(success)
+        keyframe = None
+        if self._is_new_keyframe(world_from_camera):
+            keyframe_id = len(self._keyframe_poses)
+            self._keyframe_poses[keyframe_id] = world_from_camera
+            self._keyframe_frame_indices[keyframe_id] = frame.index
+            self._keyframe_timestamps[keyframe_id] = frame.timestamp_s
+            keyframe = KeyframeEvent(
+                keyframe_id, frame.index, frame.timestamp_s, world_from_camera,
+                np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.int64), 0, 0,
+            )
+        self._seconds += time.perf_counter() - started
+        return TrackResult(frame.index, frame.timestamp_s, world_from_camera, success, keyframe is not None,
+                           inlier_count=0, keyframe=keyframe)
+
+    def _is_new_keyframe(self, world_from_camera: np.ndarray) -> bool:
+        if not self._keyframe_poses:
+            return True
+        last_from_current = inverse(self._keyframe_poses[len(self._keyframe_poses) - 1]) @ world_from_camera
+        rotation_deg = np.rad2deg(np.arccos(np.clip((np.trace(last_from_current[:3, :3]) - 1) / 2, -1.0, 1.0)))
+        return bool(np.linalg.norm(last_from_current[:3, 3]) > self.keyframe_translation_m
+                    or rotation_deg > self.keyframe_rotation_deg)
+
+    def keyframe_poses(self) -> dict[int, np.ndarray]:
+        return dict(self._keyframe_poses)
+
+    def finish(self) -> FrontendResult:
+        keyframe_ids = sorted(self._keyframe_poses)
+        timings = empty_timings()
+        timings["odometry"] = self._seconds
+        return FrontendResult(
+            trajectory=Trajectory(np.array(self._timestamps), np.stack(self._poses)),
+            tracked=np.array(self._tracked),
+            keyframe_trajectory=Trajectory(
+                np.array([self._keyframe_timestamps[k] for k in keyframe_ids]),
+                np.stack([self._keyframe_poses[k] for k in keyframe_ids]),
+            ),
+            keyframe_poses=self.keyframe_poses(),
+            keyframe_frame_indices=dict(self._keyframe_frame_indices),
+            map_points_world_m=np.zeros((0, 3)),
+            map_point_colours=np.zeros((0, 3), np.uint8),
+            map_point_ids=np.zeros(0, np.int64),
+            timings_s=timings,
+            frames_lost=int(np.sum(~np.array(self._tracked))),
+            frames_relocalised=0,
+            loops_closed=0,
+        )
