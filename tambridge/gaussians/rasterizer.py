@@ -1,0 +1,102 @@
+"""Differentiable rendering of isotropic Gaussians: colour, depth and silhouette, with gradients to the pose.
+
+``render`` moves the means into the camera frame of ``world_from_camera @ exp_se3(pose_delta)`` and projects
+them in torch (so autograd carries the pose and projection chain), then composites with one of three backends:
+
+- ``"cpu"``: the numba tile kernels of :mod:`tambridge.gaussians.cpu_kernel` behind a ``torch.autograd.Function``
+  (the path that ships; exact forward and backward of the image model in :mod:`tambridge.gaussians.model`);
+- ``"gsplat"``: gsplat's CUDA rasteriser (:mod:`tambridge.gaussians.gsplat_backend`);
+- ``"reference"``: the dense torch twin (:mod:`tambridge.gaussians.reference`), for tests.
+
+``"auto"`` takes gsplat when the Gaussians are on a CUDA device and gsplat imports, else the CPU kernel.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch.autograd.function import once_differentiable
+
+from tambridge.camera import Camera
+from tambridge.gaussians import cpu_kernel
+from tambridge.gaussians.gsplat_backend import gsplat_available, render_gsplat
+from tambridge.gaussians.model import (
+    GaussianTensors,
+    RenderOutput,
+    ScreenGaussians,
+    camera_frame_means,
+    project_to_screen,
+)
+from tambridge.gaussians.reference import composite_reference
+
+BACKENDS = ("auto", "cpu", "reference", "gsplat")
+
+
+def render(
+    gaussians: GaussianTensors,
+    camera: Camera,
+    world_from_camera: torch.Tensor | np.ndarray,
+    pose_delta: torch.Tensor | None = None,
+    background_rgb: Sequence[float] = (0.0, 0.0, 0.0),
+    backend: str = "auto",
+) -> RenderOutput:
+    """Render ``gaussians`` seen by ``camera`` at ``world_from_camera @ exp_se3(pose_delta)``.
+
+    world_from_camera: (4, 4) pose (float64 preferred). pose_delta: (6,) twist ``(rho, phi)`` applied on the right,
+    in the camera frame, or None. background_rgb: colour behind the Gaussians. Returns rgb (H, W, 3), depth_m (H, W)
+    (unnormalised, see :mod:`tambridge.gaussians.model`) and silhouette (H, W), in the Gaussians' dtype and device;
+    all are differentiable w.r.t. every field of ``gaussians`` and ``pose_delta``.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"render: backend {backend!r} is not one of {', '.join(BACKENDS)}")
+    device = gaussians.means_m.device
+    if backend == "auto":
+        backend = "gsplat" if device.type == "cuda" and gsplat_available() else "cpu"
+    if backend == "gsplat" and not gsplat_available():
+        raise RuntimeError("render: backend 'gsplat' needs a CUDA device and the gsplat package; use backend='cpu'")
+    if isinstance(world_from_camera, np.ndarray):
+        world_from_camera = torch.from_numpy(world_from_camera)
+    means_cam_m = camera_frame_means(gaussians, world_from_camera.to(device), pose_delta)
+    background = torch.tensor(background_rgb, dtype=means_cam_m.dtype, device=device)
+    if backend == "gsplat":
+        return render_gsplat(gaussians, means_cam_m, camera, background)
+    screen = project_to_screen(gaussians, means_cam_m, camera)
+    if backend == "reference":
+        return composite_reference(screen, camera.width, camera.height, background)
+    return composite_cpu(screen, camera.width, camera.height, background)
+
+
+def composite_cpu(screen: ScreenGaussians, width: int, height: int, background_rgb: torch.Tensor) -> RenderOutput:
+    """Composite screen-space Gaussians with the numba kernels; outputs on the inputs' device and dtype."""
+    rgb, depth, silhouette = _CpuComposite.apply(
+        screen.means_px, screen.radii_px, screen.depths_m, screen.opacity, screen.rgb, width, height, background_rgb
+    )
+    return RenderOutput(rgb=rgb, depth_m=depth, silhouette=silhouette)
+
+
+class _CpuComposite(torch.autograd.Function):
+    """Autograd wrapper of :mod:`cpu_kernel`: inputs are the ScreenGaussians fields, outputs the three maps."""
+
+    @staticmethod
+    def forward(ctx, means_px, radii_px, depths_m, opacity, rgb, width, height, background_rgb):
+        columns = [means_px, radii_px[:, None], depths_m[:, None], opacity[:, None], rgb]
+        packed = torch.cat([column.detach().to("cpu", torch.float64) for column in columns], dim=1).numpy()
+        background = background_rgb.detach().to("cpu", torch.float64).numpy()
+        bins = cpu_kernel.bin_tiles(packed, width, height)
+        colour, depth, silhouette, state = cpu_kernel.composite_forward(packed, bins, width, height, background)
+        ctx.kernel_inputs = (packed, bins, state, background)
+        ctx.dtype, ctx.device = means_px.dtype, means_px.device
+        return tuple(
+            torch.from_numpy(image).to(device=means_px.device, dtype=means_px.dtype) for image in (colour, depth, silhouette)
+        )
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_rgb, grad_depth, grad_silhouette):
+        packed, bins, state, background = ctx.kernel_inputs
+        image_grads = [grad.detach().to("cpu", torch.float64).contiguous().numpy() for grad in (grad_rgb, grad_depth, grad_silhouette)]
+        grads = torch.from_numpy(cpu_kernel.composite_backward(packed, bins, state, background, *image_grads))
+        grads = grads.to(device=ctx.device, dtype=ctx.dtype)
+        return grads[:, 0:2], grads[:, 2], grads[:, 3], grads[:, 4], grads[:, 5:8], None, None, None

@@ -1,0 +1,203 @@
+"""The CPU kernel against the dense torch reference and finite differences; known answers; gsplat on CUDA."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tambridge.camera import Camera
+from tambridge.geometry import exp_se3, look_at
+from tambridge.gaussians import GaussianTensors, render
+from tambridge.gaussians.model import camera_frame_means, project_to_screen
+from tambridge.gaussians.reference import composite_reference
+
+FIELDS = ("means_m", "rgb", "log_radii_m", "opacity_logits")
+BACKGROUND = (0.2, 0.3, 0.4)
+
+
+def random_gaussians(count: int, seed: int, dtype=torch.float32, opacity_logit_mean=0.0, radius_m=(0.01, 0.06)) -> GaussianTensors:
+    """Gaussians in a box 1.5-2.5 m in front of an identity camera, some of them behind it (near-plane cull)."""
+    generator = torch.Generator().manual_seed(seed)
+    means = torch.rand(count, 3, generator=generator, dtype=dtype) * torch.tensor([2.0, 1.5, 1.0], dtype=dtype)
+    means = means + torch.tensor([-1.0, -0.75, 1.5], dtype=dtype)
+    means[: count // 20, 2] -= 2.0  # 5 % behind the camera
+    radii = torch.rand(count, generator=generator, dtype=dtype) * (radius_m[1] - radius_m[0]) + radius_m[0]
+    return GaussianTensors(
+        means_m=means,
+        rgb=torch.rand(count, 3, generator=generator, dtype=dtype),
+        log_radii_m=torch.log(radii),
+        opacity_logits=torch.randn(count, generator=generator, dtype=dtype) + opacity_logit_mean,
+    )
+
+
+def requiring_grad(gaussians: GaussianTensors) -> GaussianTensors:
+    return GaussianTensors(**{name: getattr(gaussians, name).detach().clone().requires_grad_(True) for name in FIELDS})
+
+
+def scalar_loss(gaussians, camera, world_from_camera, pose_delta, backend) -> torch.Tensor:
+    """A loss that weighs every output pixel and channel differently (so no gradient cancels by symmetry)."""
+    out = render(gaussians, camera, world_from_camera, pose_delta, BACKGROUND, backend=backend)
+    height, width = out.depth_m.shape
+    dtype = out.depth_m.dtype
+    ramp = torch.linspace(0.5, 1.5, height * width, dtype=dtype).reshape(height, width)
+    colour_weights = torch.stack([ramp, ramp.flip(0), ramp.flip(1)], dim=-1)
+    return (out.rgb * colour_weights).sum() + 0.7 * (out.depth_m * ramp.T.reshape(height, width)).sum() - 1.3 * (out.silhouette * ramp).sum()
+
+
+def camera_of(width: int, height: int) -> Camera:
+    return Camera(width, height, fx=0.9 * width, fy=0.95 * width, cx=(width - 1) / 2 + 0.3, cy=(height - 1) / 2 - 0.2)
+
+
+# (count, width, height, opacity logit mean, largest radius in metres): image sizes that are not tile multiples; the
+# last case is opaque and deep enough that the alpha clamp and the early stop (T < 1e-4) happen at many pixels.
+CASES = [(60, 16, 16, 0.0, 0.06), (400, 40, 30, 0.0, 0.06), (2000, 70, 45, 0.0, 0.06), (1500, 48, 36, 5.0, 0.2)]
+
+
+@pytest.mark.parametrize("count,width,height,opacity_logit_mean,largest_radius_m", CASES)
+def test_cpu_kernel_matches_reference(count, width, height, opacity_logit_mean, largest_radius_m):
+    camera = camera_of(width, height)
+    world_from_camera = look_at(np.array([0.1, -0.2, -0.3]), np.array([0.0, 0.0, 2.0]), up=np.array([0.0, -1.0, 0.0]))
+    base = random_gaussians(count, seed=count, opacity_logit_mean=opacity_logit_mean, radius_m=(0.01, largest_radius_m))
+    results = {}
+    for backend in ("reference", "cpu"):
+        gaussians = requiring_grad(base)
+        pose_delta = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+        out = render(gaussians, camera, world_from_camera, pose_delta, BACKGROUND, backend=backend)
+        loss = scalar_loss(gaussians, camera, world_from_camera, pose_delta, backend)
+        grads = torch.autograd.grad(loss, [getattr(gaussians, name) for name in FIELDS] + [pose_delta])
+        results[backend] = (out, grads)
+    (reference, reference_grads), (fast, fast_grads) = results["reference"], results["cpu"]
+    if opacity_logit_mean > 0:
+        assert (fast.silhouette > 0.99).float().mean() > 0.3, "the opaque case should saturate many pixels"
+    for name in ("rgb", "depth_m", "silhouette"):
+        torch.testing.assert_close(getattr(fast, name), getattr(reference, name), atol=1e-5, rtol=0)
+    for name, expected, actual in zip(FIELDS + ("pose_delta",), reference_grads, fast_grads):
+        scale = expected.abs().max()
+        assert scale > 0, name
+        assert (actual - expected).abs().max() <= 1e-4 * scale, name
+
+
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_gradients_match_finite_differences(backend):
+    """Directional derivatives along random directions, float64, every field and the pose twist."""
+    camera = camera_of(24, 18)
+    world_from_camera = look_at(np.array([0.05, 0.1, -0.1]), np.array([0.0, 0.0, 2.0]), up=np.array([0.0, -1.0, 0.0]))
+    gaussians = requiring_grad(random_gaussians(40, seed=7, dtype=torch.float64, radius_m=(0.05, 0.15)))
+    pose_delta = torch.tensor([0.01, -0.02, 0.015, 0.02, -0.01, 0.03], dtype=torch.float64, requires_grad=True)
+    parameters = [getattr(gaussians, name) for name in FIELDS] + [pose_delta]
+    grads = torch.autograd.grad(scalar_loss(gaussians, camera, world_from_camera, pose_delta, backend), parameters)
+    generator = torch.Generator().manual_seed(3)
+    step = 1e-6
+    for name, parameter, grad in zip(FIELDS + ("pose_delta",), parameters, grads):
+        direction = torch.randn(parameter.shape, generator=generator, dtype=torch.float64)
+        values = []
+        for sign in (1.0, -1.0):
+            with torch.no_grad():
+                parameter += sign * step * direction
+                values.append(scalar_loss(gaussians, camera, world_from_camera, pose_delta, backend).item())
+                parameter -= sign * step * direction
+        numeric = (values[0] - values[1]) / (2 * step)
+        analytic = (grad * direction).sum().item()
+        assert abs(numeric - analytic) <= 1e-5 * max(1.0, abs(numeric)), (name, numeric, analytic)
+
+
+def test_single_gaussian_known_answer():
+    """A Gaussian whose mean projects onto a pixel centre gives o*c + (1-o)*bg, o*z and o there."""
+    camera = Camera(32, 24, fx=30.0, fy=30.0, cx=15.5, cy=11.5)
+    depth_m, opacity = 2.0, 0.6
+    pixel = (20, 5)  # (u, v)
+    means_cam = torch.tensor([[(pixel[0] - camera.cx) * depth_m / camera.fx, (pixel[1] - camera.cy) * depth_m / camera.fy, depth_m]])
+    world_from_camera = look_at(np.array([1.0, 2.0, 0.5]), np.array([1.0, 4.0, 0.5]))
+    gaussians = GaussianTensors(
+        means_m=torch.from_numpy(means_cam.numpy() @ world_from_camera[:3, :3].T + world_from_camera[:3, 3]).float(),
+        rgb=torch.tensor([[0.9, 0.5, 0.1]]),
+        log_radii_m=torch.log(torch.tensor([2.0 * depth_m / camera.fx])),  # two pixels
+        opacity_logits=torch.logit(torch.tensor([opacity])),
+    )
+    out = render(gaussians, camera, world_from_camera, background_rgb=BACKGROUND, backend="cpu")
+    expected_rgb = opacity * gaussians.rgb[0] + (1 - opacity) * torch.tensor(BACKGROUND)
+    torch.testing.assert_close(out.rgb[pixel[1], pixel[0]], expected_rgb, atol=1e-5, rtol=0)
+    assert out.depth_m[pixel[1], pixel[0]].item() == pytest.approx(opacity * depth_m, abs=1e-5)
+    assert out.silhouette[pixel[1], pixel[0]].item() == pytest.approx(opacity, abs=1e-6)
+    # One pixel along the row: exp(-1/8) falloff; beyond 3 radii (6 px): nothing.
+    assert out.silhouette[pixel[1], pixel[0] + 1].item() == pytest.approx(opacity * np.exp(-1 / 8), abs=1e-6)
+    assert out.silhouette[pixel[1], pixel[0] + 7].item() == 0.0
+    assert out.silhouette.argmax().item() == pixel[1] * camera.width + pixel[0]
+
+
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_early_stop_and_alpha_clamp_known_answer(backend):
+    """Three opaque Gaussians on one ray: T goes 1 -> 0.02 -> 4e-4, the third would take it below 1e-4 and is left out;
+    an opacity above 0.99 is clamped to 0.99."""
+    camera = Camera(16, 16, fx=20.0, fy=20.0, cx=8.0, cy=8.0)
+    depths = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    stack = GaussianTensors(
+        means_m=torch.stack([torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), depths], dim=1),
+        rgb=torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64),
+        log_radii_m=torch.log(0.1 * depths),
+        opacity_logits=torch.logit(torch.tensor([0.98, 0.98, 0.98], dtype=torch.float64)),
+    )
+    out = render(stack, camera, np.eye(4), background_rgb=BACKGROUND, backend=backend)
+    weights = torch.tensor([0.98, 0.98 * 0.02], dtype=torch.float64)
+    expected_rgb = torch.tensor([weights[0], weights[1], 0.0], dtype=torch.float64) + 0.02 * 0.02 * torch.tensor(BACKGROUND, dtype=torch.float64)
+    torch.testing.assert_close(out.rgb[8, 8], expected_rgb, atol=1e-12, rtol=0)
+    assert out.depth_m[8, 8].item() == pytest.approx((weights * depths[:2]).sum().item(), abs=1e-12)
+    assert out.silhouette[8, 8].item() == pytest.approx(1 - 0.02 * 0.02, abs=1e-12)
+    clamped = GaussianTensors(stack.means_m[:1], stack.rgb[:1], stack.log_radii_m[:1], torch.tensor([9.0], dtype=torch.float64))
+    assert render(clamped, camera, np.eye(4), backend=backend).silhouette[8, 8].item() == pytest.approx(0.99, abs=1e-12)
+
+
+def test_pose_delta_is_a_right_perturbation():
+    camera = camera_of(32, 24)
+    world_from_camera = look_at(np.array([0.2, 0.1, -0.2]), np.array([0.0, 0.0, 2.0]), up=np.array([0.0, -1.0, 0.0]))
+    twist = np.array([0.05, -0.03, 0.02, 0.04, 0.02, -0.05])
+    gaussians = random_gaussians(300, seed=1, dtype=torch.float64)
+    perturbed = render(gaussians, camera, world_from_camera, torch.from_numpy(twist), backend="cpu")
+    composed = render(gaussians, camera, world_from_camera @ exp_se3(twist), backend="cpu")
+    torch.testing.assert_close(perturbed.rgb, composed.rgb, atol=1e-12, rtol=0)
+    torch.testing.assert_close(perturbed.depth_m, composed.depth_m, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_silhouette_in_unit_interval_and_behind_camera_skipped(backend):
+    camera = camera_of(40, 30)
+    gaussians = requiring_grad(random_gaussians(800, seed=5, opacity_logit_mean=4.0))
+    out = render(gaussians, camera, np.eye(4), backend=backend)
+    assert out.silhouette.min() >= 0.0 and out.silhouette.max() <= 1.0
+    assert out.silhouette.max() > 0.99
+    (out.rgb.sum() + out.depth_m.sum() + out.silhouette.sum()).backward()
+    behind = gaussians.means_m[:, 2] <= 0.01
+    assert behind.any()
+    for name in FIELDS:
+        grad = getattr(gaussians, name).grad
+        assert torch.isfinite(grad).all(), name
+        assert (grad[behind] == 0).all(), name
+
+
+def test_tiled_reference_equals_dense_reference():
+    """The benchmark's tiled torch baseline culls per tile exactly: same maps as the dense reference."""
+    camera = camera_of(50, 35)
+    gaussians = random_gaussians(700, seed=11, opacity_logit_mean=1.0)
+    screen = project_to_screen(gaussians, camera_frame_means(gaussians, torch.eye(4, dtype=torch.float64)), camera)
+    background = torch.tensor(BACKGROUND)
+    dense = composite_reference(screen, camera.width, camera.height, background)
+    tiled = composite_reference(screen, camera.width, camera.height, background, tile_px=16)
+    for name in ("rgb", "depth_m", "silhouette"):
+        torch.testing.assert_close(getattr(tiled, name), getattr(dense, name), atol=1e-6, rtol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat runs on CUDA only")
+def test_gsplat_agrees_with_cpu_kernel():
+    pytest.importorskip("gsplat")
+    camera = Camera(64, 48, fx=60.0, fy=60.0, cx=31.5, cy=23.5)
+    # Small Gaussians near the optical axis, where gsplat's EWA footprint is the same circle as ours.
+    gaussians = random_gaussians(500, seed=2, radius_m=(0.02, 0.04))
+    gaussians.means_m[:, :2] *= 0.4
+    gaussians.means_m[:, 2] = gaussians.means_m[:, 2].abs() + 1.5
+    cpu = render(gaussians, camera, np.eye(4), background_rgb=BACKGROUND, backend="cpu")
+    cuda_gaussians = GaussianTensors(**{name: getattr(gaussians, name).cuda() for name in FIELDS})
+    gpu = render(cuda_gaussians, camera, np.eye(4), background_rgb=BACKGROUND, backend="gsplat")
+    for name in ("rgb", "silhouette"):
+        assert (getattr(gpu, name).cpu() - getattr(cpu, name)).abs().mean() < 0.02, name
+    assert (gpu.depth_m.cpu() - cpu.depth_m).abs().mean() < 0.05
