@@ -140,7 +140,7 @@ class RgbdSequence:
 
     def read_rgb(self, path: Path) -> np.ndarray:
         """Colour image as (H, W, 3) uint8 RGB, checked against the camera size."""
-        image = _imread(path, cv2.IMREAD_COLOR)
+        image = _imread(path, cv2.IMREAD_COLOR, "rgb.txt")
         if image.dtype != np.uint8:
             raise SequenceFormatError(f"{path}: colour image must be 8-bit, got {image.dtype}")
         camera = self.sensor.camera
@@ -153,7 +153,7 @@ class RgbdSequence:
 
     def read_depth_m(self, path: Path) -> np.ndarray:
         """Depth PNG (uint16) as (H, W) float32 metres, 0 where invalid."""
-        raw = _imread(path, cv2.IMREAD_UNCHANGED)
+        raw = _imread(path, cv2.IMREAD_UNCHANGED, "depth.txt")
         if raw.ndim != 2 or raw.dtype != np.uint16:
             raise SequenceFormatError(
                 f"{path}: depth must be a single-channel 16-bit PNG, got {raw.dtype} with shape {raw.shape}; "
@@ -165,11 +165,18 @@ class RgbdSequence:
         return depth_m
 
 
-def _imread(path: Path, flags: int) -> np.ndarray:
+def _imread(path: Path, flags: int, listed_in: str) -> np.ndarray:
     if not path.is_file():
-        raise SequenceFormatError(f"{path}: image listed in the index file does not exist")
+        raise SequenceFormatError(f"{path}: image listed in {listed_in} does not exist; fix {listed_in} or restore the file")
     if path.stat().st_size == 0:
         raise SequenceFormatError(f"{path}: empty file; re-extract the sequence")
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        with open(path, "rb") as handle:
+            handle.seek(max(0, path.stat().st_size - 64))
+            tail = handle.read()
+        # libjpeg decodes a truncated file into a half-grey image with only a warning: check the end marker.
+        if b"\xff\xd9" not in tail:
+            raise SequenceFormatError(f"{path}: JPEG has no end marker (truncated); re-extract the sequence")
     image = cv2.imread(str(path), flags)
     if image is None or image.size == 0:
         raise SequenceFormatError(f"{path}: cannot decode image (corrupt or truncated); re-extract the sequence")
