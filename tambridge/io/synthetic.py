@@ -176,11 +176,29 @@ def render(scene: SyntheticScene, camera: Camera, world_from_camera: np.ndarray)
         if selected.size == 0:
             continue
         local = origin + best_t[selected, None] * rays_world[selected] - face.centre_m
-        map_x = ((local @ face.axis_u + face.half_u_m) * TEXTURE_PIXELS_PER_M).astype(np.float32).reshape(-1, 1)
-        map_y = ((local @ face.axis_v + face.half_v_m) * TEXTURE_PIXELS_PER_M).astype(np.float32).reshape(-1, 1)
-        colour[selected] = cv2.remap(face.texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)
+        map_x = (local @ face.axis_u + face.half_u_m) * TEXTURE_PIXELS_PER_M
+        map_y = (local @ face.axis_v + face.half_v_m) * TEXTURE_PIXELS_PER_M
+        colour[selected] = _sample_texture(face.texture, map_x, map_y)
     depth_m = np.where(np.isfinite(best_t), best_t, 0.0).astype(np.float32)
     return colour.reshape(camera.height, camera.width, 3), depth_m.reshape(camera.height, camera.width)
+
+
+def _sample_texture(texture: np.ndarray, x_px: np.ndarray, y_px: np.ndarray) -> np.ndarray:
+    """Bilinear samples (N, 3) of ``texture`` at texel coordinates ``x_px``, ``y_px`` (N,).
+
+    The coordinates are laid out in rows of 1024 because cv2.remap limits each side of its maps to 32767
+    (a single (N, 1) column fails for faces covering more pixels than that, e.g. at 320x240).
+    """
+    columns = 1024
+    count = len(x_px)
+    padded = -(-count // columns) * columns
+    map_x = np.zeros(padded, np.float32)
+    map_y = np.zeros(padded, np.float32)
+    map_x[:count] = x_px
+    map_y[:count] = y_px
+    samples = cv2.remap(texture, map_x.reshape(-1, columns), map_y.reshape(-1, columns), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REPLICATE)
+    return samples.reshape(-1, 3)[:count]
 
 
 @dataclasses.dataclass(frozen=True)
