@@ -19,3 +19,7 @@ class TrajectoryFormatError(TambridgeError):
 
 class TrackingLostError(TambridgeError):
     """The frontend could not track a frame and could not recover."""
+
+
+class SplatFormatError(TambridgeError):
+    """A Gaussian-splat .ply file lacks the INRIA 3DGS properties or cannot be parsed."""

@@ -9,7 +9,8 @@ The image model (TAMBRIDGE paper, Sec. 3.4; SplaTAM's simplification of 3DGS):
   a circle; for fx != fy this is the paper's "f", not the anisotropic EWA footprint gsplat computes);
 - at a pixel ``p`` (pixel centres at integer coordinates, OpenCV convention) it has the weight
   ``alpha_i(p) = min(ALPHA_MAX, o_i exp(-|p - mu2D_i|^2 / (2 r2D_i^2)))``, and 0 outside ``SIGMA_CUTOFF`` radii;
-- Gaussians are composited front to back by ``d_i``: with ``T_i = prod_{j<i} (1 - alpha_j)``,
+- Gaussians are composited front to back by ``d_i`` (rounded to float32, ties in index order): with
+  ``T_i = prod_{j<i} (1 - alpha_j)``,
   ``C(p) = sum_i c_i alpha_i T_i + T_final * background``, ``D(p) = sum_i d_i alpha_i T_i`` and the silhouette
   (border mask) ``M_b(p) = sum_i alpha_i T_i = 1 - T_final``;
 - compositing stops before the first Gaussian that would bring the transmittance below ``TRANSMITTANCE_MIN``

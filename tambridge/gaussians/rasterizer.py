@@ -85,8 +85,8 @@ class _CpuComposite(torch.autograd.Function):
         packed = torch.cat([column.detach().to("cpu", torch.float64) for column in columns], dim=1).numpy()
         background = background_rgb.detach().to("cpu", torch.float64).numpy()
         bins = cpu_kernel.bin_tiles(packed, width, height)
-        colour, depth, silhouette, state = cpu_kernel.composite_forward(packed, bins, width, height, background)
-        ctx.kernel_inputs = (packed, bins, state, background)
+        colour, depth, silhouette, state = cpu_kernel.composite_forward(bins, width, height, background)
+        ctx.kernel_inputs = (bins, state, background)
         ctx.dtype, ctx.device = means_px.dtype, means_px.device
         return tuple(
             torch.from_numpy(image).to(device=means_px.device, dtype=means_px.dtype) for image in (colour, depth, silhouette)
@@ -95,8 +95,8 @@ class _CpuComposite(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_rgb, grad_depth, grad_silhouette):
-        packed, bins, state, background = ctx.kernel_inputs
+        bins, state, background = ctx.kernel_inputs
         image_grads = [grad.detach().to("cpu", torch.float64).contiguous().numpy() for grad in (grad_rgb, grad_depth, grad_silhouette)]
-        grads = torch.from_numpy(cpu_kernel.composite_backward(packed, bins, state, background, *image_grads))
+        grads = torch.from_numpy(cpu_kernel.composite_backward(bins, state, background, *image_grads))
         grads = grads.to(device=ctx.device, dtype=ctx.dtype)
         return grads[:, 0:2], grads[:, 2], grads[:, 3], grads[:, 4], grads[:, 5:8], None, None, None

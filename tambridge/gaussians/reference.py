@@ -34,7 +34,8 @@ def composite_pixels(
     Inputs are the fields of :class:`ScreenGaussians` (means_px (N, 2), radii_px, depths_m, opacity (N,), rgb (N, 3)).
     """
     in_front = torch.nonzero(depths_m > NEAR_PLANE_M).squeeze(1)
-    order = in_front[torch.sort(depths_m[in_front], stable=True).indices]
+    # Front to back by float32 depth, ties in index order: the order the CPU kernel uses whatever the dtype.
+    order = in_front[torch.sort(depths_m[in_front].to(torch.float32), stable=True).indices]
     means_px, radii_px, depths_m = means_px[order], radii_px[order], depths_m[order]
     opacity, rgb = opacity[order], rgb[order]
 
