@@ -1,0 +1,170 @@
+"""One benchmark over the real data: tambridge against its peers, side by side, on the same machine.
+
+    python benchmarks/run_all.py --data ../shared/data            # every sequence with ground truth, full length
+    python benchmarks/run_all.py --data ../shared/data --quick    # first 100 frames of each (under 10 min on 2 cores)
+
+Each method runs as its own process (its peak memory is that process's ru_maxrss, read with wait4), writes its
+usual output folder under benchmarks/results/runs/, and the table is printed, written to
+benchmarks/results/run_all.json and copied into README.md between the results markers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
+from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.io.tum import open_sequence  # noqa: E402
+from tambridge.trajectory import read_tum_trajectory  # noqa: E402
+
+README_START = "<!-- results:start -->"
+README_END = "<!-- results:end -->"
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """A way to run the data: a CLI invocation and whether its trajectory is monocular (Sim(3)-aligned)."""
+
+    name: str
+    command: tuple[str, ...]
+    monocular: bool = False
+
+
+METHODS = (
+    Method("tambridge default", ("reconstruct", "--config", "configs/default.yaml")),
+    Method("tambridge fast", ("reconstruct", "--config", "configs/fast.yaml")),
+    Method("tambridge bridge off", ("reconstruct", "--set", "bridge.enabled=false")),
+    Method("tambridge open3d frontend", ("reconstruct", "--config", "configs/open3d.yaml")),
+    Method("open3d frame-to-frame", ("reconstruct", "--set", "frontend.kind=open3d_f2f", "--set", "mapper.enabled=false",
+                                     "--set", "mesh.enabled=false")),
+    Method("COLMAP (pycolmap, every 5th frame)", ("colmap", "--every", "5"), monocular=True),
+)
+
+
+def sequences_with_ground_truth(data: Path) -> list[Path]:
+    """Folders under ``data`` that are TUM-layout sequences (rgb.txt, depth.txt) with groundtruth.txt and >= 10 frames."""
+    found = []
+    for folder in sorted(p for p in data.iterdir() if p.is_dir()):
+        if all((folder / name).is_file() for name in ("rgb.txt", "depth.txt", "groundtruth.txt")):
+            if len(open_sequence(folder, check_depth_scale=False)) >= 10:
+                found.append(folder)
+    return found
+
+
+def run_method(method: Method, sequence: Path, out: Path, max_frames: int | None, gpu: bool) -> dict:
+    """Run one method on one sequence in a child process; returns its row of the table."""
+    command = [sys.executable, str(ROOT / "cli.py"), *method.command, str(sequence), "-o", str(out)]
+    if method.command[0] == "reconstruct":
+        command.append("--quiet")
+    if max_frames is not None:
+        command += ["--max-frames", str(max_frames)]
+    environment = dict(os.environ, TAMBRIDGE_DEVICE="cuda" if gpu else "cpu")
+    started = time.perf_counter()
+    log = open(out.parent / f"{out.name}.log", "w")
+    child = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env=environment)
+    _, status, usage = os.wait4(child.pid, 0)
+    seconds = time.perf_counter() - started
+    log.close()
+    row = {"method": method.name, "sequence": sequence.name, "exit_status": os.waitstatus_to_exitcode(status),
+           "seconds": seconds, "peak_memory_mb": usage.ru_maxrss / 1024.0, "device": "cuda" if gpu else "cpu"}
+    metrics_path = out / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    trajectory_path = out / "trajectory.txt"
+    if row["exit_status"] == 0 and trajectory_path.is_file():
+        ground_truth = read_tum_trajectory(sequence / "groundtruth.txt")
+        errors = evaluate_trajectory(read_tum_trajectory(trajectory_path), ground_truth,
+                                     align="sim3" if method.monocular else "se3")
+        row.update(ate_cm=errors.ate_rmse_m * 100, rpe_cm=errors.rpe_trans_rmse_m * 100, poses=errors.pose_count)
+    rendering = metrics.get("rendering") or {}
+    novel = rendering.get("novel_views") or {}
+    row.update(psnr_db=novel.get("psnr_db"), ssim=novel.get("ssim"), lpips=novel.get("lpips"))
+    frames = metrics.get("frames") or metrics.get("frames_used")
+    row["fps"] = frames / seconds if frames else None
+    row["outputs"] = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith(".")) if out.is_dir() else []
+    return row
+
+
+def format_table(rows: list[dict]) -> str:
+    """A Markdown table of the rows."""
+    columns = [("sequence", "sequence", "{}"), ("method", "method", "{}"), ("ATE cm", "ate_cm", "{:.2f}"),
+               ("RPE cm/frame", "rpe_cm", "{:.2f}"), ("PSNR dB", "psnr_db", "{:.2f}"), ("SSIM", "ssim", "{:.3f}"),
+               ("LPIPS", "lpips", "{:.3f}"), ("frames/s", "fps", "{:.2f}"), ("peak MB", "peak_memory_mb", "{:.0f}"),
+               ("outputs", "outputs", "{}")]
+    lines = ["| " + " | ".join(title for title, _, _ in columns) + " |", "|" + "---|" * len(columns)]
+    for row in rows:
+        cells = []
+        for _, key, form in columns:
+            value = row.get(key)
+            if row.get("exit_status", 0) != 0 and key == "outputs":
+                cells.append(f"failed (exit {row['exit_status']})")
+            elif value is None or value == []:
+                cells.append("-")
+            elif isinstance(value, list):
+                cells.append(", ".join(value))
+            else:
+                cells.append(form.format(value))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def update_readme(table: str, command: str, machine: str) -> None:
+    readme = ROOT / "README.md"
+    text = readme.read_text()
+    if README_START not in text:
+        return
+    head, rest = text.split(README_START, 1)
+    _, tail = rest.split(README_END, 1)
+    section = (f"{README_START}\nMeasured {datetime.date.today().isoformat()} on {machine} with `{command}`:\n\n"
+               f"{table}\n{README_END}")
+    atomic_write_text(readme, head + section + tail)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    parser.add_argument("--quick", action="store_true", help="first 100 frames of each sequence")
+    parser.add_argument("--gpu", action="store_true", help="use CUDA (gsplat) where present")
+    parser.add_argument("--methods", nargs="*", help="subset of method names")
+    parser.add_argument("--no-readme", action="store_true", help="do not rewrite README.md's results section")
+    arguments = parser.parse_args()
+    if arguments.gpu:
+        import torch
+
+        if not torch.cuda.is_available():
+            parser.error("--gpu: CUDA is not available on this machine")
+    max_frames = 100 if arguments.quick else None
+    runs = ROOT / "benchmarks" / "results" / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for sequence in sequences_with_ground_truth(arguments.data):
+        for method in METHODS:
+            if arguments.methods and method.name not in arguments.methods:
+                continue
+            out = runs / f"{sequence.name}__{method.name.split(' (')[0].replace(' ', '_')}"
+            print(f"running {method.name} on {sequence.name} ...", flush=True)
+            rows.append(run_method(method, sequence, out, max_frames, arguments.gpu))
+    table = format_table(rows)
+    print(table)
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    command = "python benchmarks/run_all.py --data ../shared/data" + (" --quick" if arguments.quick else "")
+    result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine, "command": command,
+              "rows": rows}
+    atomic_write_text(ROOT / "benchmarks" / "results" / "run_all.json", json.dumps(result, indent=2) + "\n")
+    if not arguments.no_readme:
+        update_readme(table, command, machine)
+
+
+if __name__ == "__main__":
+    main()
