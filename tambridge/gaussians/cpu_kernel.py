@@ -44,13 +44,20 @@ _CUTOFF_SQ = SIGMA_CUTOFF * SIGMA_CUTOFF
 
 @dataclasses.dataclass
 class TileBins:
-    """Per-tile front-to-back lists. Tile t owns entries ``tile_starts[t]:tile_starts[t + 1]``; entry e is Gaussian
-    ``gaussian_ids[e]`` (E,) int64 and ``entry_rows[e]`` (E, PACKED_COLUMNS) is a copy of its packed row."""
+    """Per-tile front-to-back lists of the M visible Gaussians.
+
+    Tile t owns entries ``tile_starts[t]:tile_starts[t + 1]`` of ``entry_rows`` (E, PACKED_COLUMNS), each a copy of
+    its Gaussian's packed row. ``order`` (M,) lists the visible Gaussians front to back; the k-th of them owns the
+    gradient slots ``slot_starts[k]:slot_starts[k + 1]``, one per tile it is listed in, and entry e writes its
+    gradients to slot ``entry_slots[e]``, so that summing a Gaussian's gradients reads consecutive memory.
+    """
 
     entry_rows: np.ndarray
-    gaussian_ids: np.ndarray
+    entry_slots: np.ndarray
     tile_starts: np.ndarray
     tiles_x: int
+    order: np.ndarray
+    slot_starts: np.ndarray
     gaussian_count: int
 
 
@@ -86,35 +93,47 @@ def _pixel_box(u, v, radius, x_lo, x_hi, y_lo, y_hi):
 
 @numba.njit(cache=True)
 def _bin_tiles(packed, order, width, height, tile_px, tiles_x, tiles_y):
+    """Counting sort of (Gaussian, tile) entries by tile, stable in depth order.
+
+    Serial: it is memory-bound (a random gather, then scattered appends to the tiles' lists), and a parallel
+    version with per-chunk counts cost more CPU time and no less wall time on 2 cores.
+    """
     count = order.size
     sorted_rows = np.empty((count, PACKED_COLUMNS))
-    for k in range(count):  # the one pass that reads the input in random order
+    tile_boxes = np.empty((count, 4), np.int64)
+    slot_starts = np.zeros(count + 1, np.int64)
+    tile_starts = np.zeros(tiles_x * tiles_y + 1, np.int64)
+    # The one pass that reads the input in random order; alone in its loop, so the loads overlap (2x faster).
+    for k in range(count):
         for column in range(PACKED_COLUMNS):
             sorted_rows[k, column] = packed[order[k], column]
-    tile_boxes = np.empty((count, 4), np.int64)
-    tile_counts = np.zeros(tiles_x * tiles_y + 1, np.int64)
     for k in range(count):
         x0, x1, y0, y1 = _pixel_box(sorted_rows[k, U], sorted_rows[k, V], sorted_rows[k, RADIUS], 0, width - 1, 0, height - 1)
-        tile_boxes[k, 0], tile_boxes[k, 1] = x0 // tile_px, x1 // tile_px
-        tile_boxes[k, 2], tile_boxes[k, 3] = y0 // tile_px, y1 // tile_px
-        if x0 > x1 or y0 > y1:
-            tile_boxes[k, 1] = tile_boxes[k, 0] - 1  # no pixel: off the image or between pixel centres
-        for ty in range(tile_boxes[k, 2], tile_boxes[k, 3] + 1):
-            for tx in range(tile_boxes[k, 0], tile_boxes[k, 1] + 1):
-                tile_counts[ty * tiles_x + tx + 1] += 1
-    tile_starts = np.cumsum(tile_counts)
+        if x0 > x1 or y0 > y1:  # off the image, or between pixel centres
+            tx0, tx1, ty0, ty1 = 0, -1, 0, -1
+        else:
+            tx0, tx1, ty0, ty1 = x0 // tile_px, x1 // tile_px, y0 // tile_px, y1 // tile_px
+        tile_boxes[k, 0], tile_boxes[k, 1], tile_boxes[k, 2], tile_boxes[k, 3] = tx0, tx1, ty0, ty1
+        slot_starts[k + 1] = slot_starts[k] + (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                tile_starts[ty * tiles_x + tx + 1] += 1
+    for tile in range(tiles_x * tiles_y):
+        tile_starts[tile + 1] += tile_starts[tile]
     cursor = tile_starts[:-1].copy()
     entry_rows = np.empty((tile_starts[-1], PACKED_COLUMNS))
-    gaussian_ids = np.empty(tile_starts[-1], np.int64)
+    entry_slots = np.empty(tile_starts[-1], np.int64)
     for k in range(count):
+        slot = slot_starts[k]
         for ty in range(tile_boxes[k, 2], tile_boxes[k, 3] + 1):
             for tx in range(tile_boxes[k, 0], tile_boxes[k, 1] + 1):
                 entry = cursor[ty * tiles_x + tx]
+                cursor[ty * tiles_x + tx] = entry + 1
                 for column in range(PACKED_COLUMNS):
                     entry_rows[entry, column] = sorted_rows[k, column]
-                gaussian_ids[entry] = order[k]
-                cursor[ty * tiles_x + tx] = entry + 1
-    return entry_rows, gaussian_ids, tile_starts
+                entry_slots[entry] = slot
+                slot += 1
+    return entry_rows, entry_slots, tile_starts, slot_starts
 
 
 def bin_tiles(packed: np.ndarray, width: int, height: int) -> TileBins:
@@ -123,8 +142,8 @@ def bin_tiles(packed: np.ndarray, width: int, height: int) -> TileBins:
     visible = np.flatnonzero((packed[:, DEPTH] > NEAR_PLANE_M) & (packed[:, RADIUS] > 0))
     order = visible[depth_order(packed[visible, DEPTH])]
     tiles_x, tiles_y = -(-width // TILE_PX), -(-height // TILE_PX)
-    entry_rows, gaussian_ids, tile_starts = _bin_tiles(packed, order, width, height, TILE_PX, tiles_x, tiles_y)
-    return TileBins(entry_rows, gaussian_ids, tile_starts, tiles_x, packed.shape[0])
+    entry_rows, entry_slots, tile_starts, slot_starts = _bin_tiles(packed, order, width, height, TILE_PX, tiles_x, tiles_y)
+    return TileBins(entry_rows, entry_slots, tile_starts, tiles_x, order, slot_starts, packed.shape[0])
 
 
 @numba.njit(cache=True, inline="always")
@@ -223,7 +242,7 @@ def composite_forward(
 
 
 @numba.njit(parallel=True, cache=True)
-def _backward(entry_rows, tile_starts, tiles_x, tile_px, background, transmittance_final, contributors, grad_rgb, grad_depth, grad_silhouette, entry_grads):
+def _backward(entry_rows, entry_slots, tile_starts, tiles_x, tile_px, background, transmittance_final, contributors, grad_rgb, grad_depth, grad_silhouette, slot_grads):
     height, width = grad_depth.shape
     for tile in numba.prange(tile_starts.size - 1):
         y_lo = (tile // tiles_x) * tile_px
@@ -301,16 +320,19 @@ def _backward(entry_rows, tile_starts, tiles_x, tile_px, background, transmittan
                     grad_u -= grad_q * 2.0 * x_offsets[kx] * 2.0 * half_inv_radius_sq
                     grad_v -= grad_q * 2.0 * y_offsets[ky] * 2.0 * half_inv_radius_sq
                     grad_radius -= grad_q * 2.0 * distance_sq / radius
-            grad = entry_grads[entry]  # this entry's own row: no other thread writes it
+            grad = slot_grads[entry_slots[entry]]  # this entry's own slot: no other thread writes it
             grad[U], grad[V], grad[RADIUS], grad[DEPTH], grad[OPACITY] = grad_u, grad_v, grad_radius, grad_z, grad_opacity
             grad[RED], grad[RED + 1], grad[RED + 2] = grad_red, grad_green, grad_blue
 
 
-@numba.njit(cache=True)
-def _sum_entries(gaussian_ids, entry_grads, grads):
-    for entry in range(gaussian_ids.size):
-        for column in range(PACKED_COLUMNS):  # a loop, not row arithmetic, which would allocate a temporary
-            grads[gaussian_ids[entry], column] += entry_grads[entry, column]
+@numba.njit(parallel=True, cache=True)
+def _sum_slots(order, slot_starts, slot_grads, grads):
+    for k in numba.prange(order.size):
+        for column in range(PACKED_COLUMNS):
+            total = 0.0
+            for slot in range(slot_starts[k], slot_starts[k + 1]):
+                total += slot_grads[slot, column]
+            grads[order[k], column] = total
 
 
 def composite_backward(
@@ -323,11 +345,11 @@ def composite_backward(
 ) -> np.ndarray:
     """Gradients (N, PACKED_COLUMNS) float64 of the loss w.r.t. the packed columns, given its gradients w.r.t.
     the rendered rgb (H, W, 3), depth (H, W) and silhouette (H, W), all float64."""
-    entry_grads = np.zeros((bins.gaussian_ids.size, PACKED_COLUMNS))
+    slot_grads = np.zeros((bins.entry_slots.size, PACKED_COLUMNS))
     _backward(
-        bins.entry_rows, bins.tile_starts, bins.tiles_x, TILE_PX, np.asarray(background_rgb, np.float64),
-        state.transmittance_final, state.contributors, grad_rgb, grad_depth, grad_silhouette, entry_grads,
+        bins.entry_rows, bins.entry_slots, bins.tile_starts, bins.tiles_x, TILE_PX, np.asarray(background_rgb, np.float64),
+        state.transmittance_final, state.contributors, grad_rgb, grad_depth, grad_silhouette, slot_grads,
     )
     grads = np.zeros((bins.gaussian_count, PACKED_COLUMNS))
-    _sum_entries(bins.gaussian_ids, entry_grads, grads)
+    _sum_slots(bins.order, bins.slot_starts, slot_grads, grads)
     return grads

@@ -1,0 +1,252 @@
+"""Rasteriser speed and memory: the numba CPU kernel against the torch reference, on Gaussians from a real scene.
+
+    python benchmarks/rasterizer.py                       # 320x240 and 640x480, 50k/200k/500k Gaussians
+    python benchmarks/rasterizer.py --counts 200000 --resolutions 640x480 --repeats 3
+
+Gaussians are back-projected from frames of 7-Scenes redkitchen (every valid depth pixel, through the ground-truth
+pose, one-pixel radius r = d / f as the mapper initialises them, opacity 0.5), a random subset of each size, and
+rendered from the first frame's pose. "forward" renders without autograd; "forward+backward" renders with every
+field requiring gradients and back-propagates an L1 loss on colour and depth against the frame.
+
+Each (size, backend) runs in its own process, so its peak memory is its own: the growth of the process's peak RSS
+(VmHWM, reset after the scene is built) over its RSS just before the first render. Wall time is the median over repeats after one warm-up;
+cpu_s is the process CPU time of the same calls (wall x cores used, when the machine is not shared).
+The torch reference is :func:`tambridge.gaussians.reference.composite_reference` tiled by 16 px (per-tile
+culling is exact; the untiled form would need an N x H x W tensor: 15 GB and more at these sizes).
+
+The table goes to stdout, everything to benchmarks/results/rasterizer.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import functools
+import gc
+import json
+import multiprocessing
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+DEFAULT_DATA = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699"
+SOURCE_FRAMES = (0, 10, 20)
+
+
+def parse_resolution(text: str) -> tuple[int, int]:
+    width, height = text.lower().split("x")
+    return int(width), int(height)
+
+
+def status_mb(field: str) -> float:
+    """A memory field of /proc/self/status (VmRSS, VmHWM: the peak RSS), in MiB."""
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024
+    raise KeyError(field)
+
+
+def reset_peak_rss() -> None:
+    """Make VmHWM restart from the current RSS (Linux >= 4.0), so the scene building does not count."""
+    with open("/proc/self/clear_refs", "w") as clear_refs:
+        clear_refs.write("5")
+
+
+def build_scene(data: Path, count: int, width: int, seed: int = 0):
+    """(GaussianTensors, camera, world_from_camera, target rgb (H, W, 3), target depth (H, W)) for one benchmark case."""
+    import cv2
+    import numpy as np
+    import torch
+
+    from tambridge.gaussians import GaussianTensors
+    from tambridge.io import open_sequence
+
+    sequence = open_sequence(data)
+    camera = sequence.camera
+    points, colours, radii = [], [], []
+    for index in SOURCE_FRAMES:
+        frame = sequence[index]
+        world_from_camera = sequence.ground_truth.world_from_camera[index]
+        rows, cols = np.nonzero(frame.depth_m > 0)
+        depth = frame.depth_m[rows, cols].astype(np.float64)
+        points_cam = np.stack([(cols - camera.cx) * depth / camera.fx, (rows - camera.cy) * depth / camera.fy, depth], 1)
+        points.append(points_cam @ world_from_camera[:3, :3].T + world_from_camera[:3, 3])
+        colours.append(frame.rgb[rows, cols] / 255.0)
+        radii.append(depth / (0.5 * (camera.fx + camera.fy)))
+    points, colours, radii = np.concatenate(points), np.concatenate(colours), np.concatenate(radii)
+    if count > len(points):
+        raise SystemExit(f"{count} Gaussians asked, frames {SOURCE_FRAMES} give {len(points)}")
+    chosen = np.random.default_rng(seed).choice(len(points), count, replace=False)
+    gaussians = GaussianTensors(
+        means_m=torch.tensor(points[chosen], dtype=torch.float32),
+        rgb=torch.tensor(colours[chosen], dtype=torch.float32),
+        log_radii_m=torch.log(torch.tensor(radii[chosen], dtype=torch.float32)),
+        opacity_logits=torch.zeros(count),
+    )
+    view = sequence[SOURCE_FRAMES[0]]
+    scale = width / camera.width
+    render_camera = camera if scale == 1 else camera.scaled(scale)
+    size = (render_camera.width, render_camera.height)
+    target_rgb = torch.from_numpy(cv2.resize(view.rgb, size, interpolation=cv2.INTER_AREA) / 255.0).float()
+    target_depth = torch.from_numpy(cv2.resize(view.depth_m, size, interpolation=cv2.INTER_NEAREST)).float()
+    return gaussians, render_camera, sequence.ground_truth.world_from_camera[SOURCE_FRAMES[0]], target_rgb, target_depth
+
+
+def measure(data: str, count: int, resolution: tuple[int, int], backend: str, mode: str, repeats: int) -> dict:
+    """Run one case in this (fresh) process; returns timings, peak memory and, for the CPU kernel, a breakdown."""
+    import numba
+    import numpy as np
+    import torch
+
+    from tambridge.gaussians import GaussianTensors, cpu_kernel, render
+    from tambridge.gaussians.model import camera_frame_means, project_to_screen
+    from tambridge.gaussians.reference import composite_reference
+
+    gaussians, camera, world_from_camera, target_rgb, target_depth = build_scene(Path(data), count, resolution[0])
+    background = torch.zeros(3)
+    stage_s: dict[str, float] = {}
+    if backend == "cpu":
+        for name in ("bin_tiles", "composite_forward", "composite_backward"):
+            original = getattr(cpu_kernel, name)
+
+            @functools.wraps(original)
+            def timed(*args, _original=original, _name=name, **kwargs):
+                start = time.perf_counter()
+                result = _original(*args, **kwargs)
+                stage_s[_name] = stage_s.get(_name, 0.0) + time.perf_counter() - start
+                return result
+
+            setattr(cpu_kernel, name, timed)
+
+    def render_once(splats: GaussianTensors):
+        if backend == "cpu":
+            return render(splats, camera, world_from_camera, background_rgb=(0.0, 0.0, 0.0), backend="cpu")
+        screen = project_to_screen(splats, camera_frame_means(splats, torch.from_numpy(world_from_camera)), camera)
+        return composite_reference(screen, camera.width, camera.height, background, tile_px=16)
+
+    def step(splats: GaussianTensors):
+        if mode == "forward":
+            with torch.no_grad():
+                render_once(splats)
+            return
+        for name in ("means_m", "rgb", "log_radii_m", "opacity_logits"):
+            getattr(splats, name).grad = None
+            getattr(splats, name).requires_grad_(True)
+        out = render_once(splats)
+        loss = (out.rgb - target_rgb).abs().mean() + (out.depth_m - target_depth).abs().mean()
+        loss.backward()
+
+    # Load the compiled numba code and torch's kernels on a tiny scene first: a one-off cost, not a render's memory.
+    step(GaussianTensors(*(getattr(gaussians, name).detach()[:1000].clone() for name in ("means_m", "rgb", "log_radii_m", "opacity_logits"))))
+    gc.collect()
+    reset_peak_rss()
+    baseline_mb = status_mb("VmRSS")
+    step(gaussians)  # warm-up at full size
+    stage_s.clear()
+    walls, cpus = [], []
+    for _ in range(repeats):
+        wall, cpu = time.perf_counter(), time.process_time()
+        step(gaussians)
+        walls.append(time.perf_counter() - wall)
+        cpus.append(time.process_time() - cpu)
+    peak_mb = status_mb("VmHWM")
+    result = {
+        "resolution": f"{camera.width}x{camera.height}",
+        "gaussians": count,
+        "backend": backend,
+        "mode": mode,
+        "repeats": repeats,
+        "wall_s_median": float(np.median(walls)),
+        "wall_s_min": float(np.min(walls)),
+        "cpu_s_median": float(np.median(cpus)),
+        "peak_memory_mb": peak_mb - baseline_mb,
+        "threads": {"numba": numba.get_num_threads(), "torch": torch.get_num_threads()},
+    }
+    if stage_s:
+        result["stage_s_mean"] = {name: seconds / repeats for name, seconds in stage_s.items()}
+    return result
+
+
+def run_isolated(*args) -> dict:
+    """``measure`` in a fresh spawned process (its own ru_maxrss)."""
+    with multiprocessing.get_context("spawn").Pool(1, maxtasksperchild=1) as pool:
+        return pool.apply(measure, args)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--counts", type=lambda s: [int(c) for c in s.split(",")], default=[50_000, 200_000, 500_000])
+    parser.add_argument("--resolutions", type=lambda s: [parse_resolution(r) for r in s.split(",")], default=[(320, 240), (640, 480)])
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs of the CPU kernel per case (after a warm-up)")
+    parser.add_argument("--reference-repeats", type=int, default=1)
+    parser.add_argument("--reference-max-gaussians", type=int, default=500_000,
+                        help="skip the torch reference above this many Gaussians (it takes seconds to minutes)")
+    parser.add_argument(
+        "--omp-wait-policy", choices=("passive", "active"), default="passive",
+        help="OpenMP workers' idle policy in the measuring processes (default passive: on a machine shared with other "
+        "work, spinning torch workers take the cores the numba kernels need; ~10x on the torch part, 2 loaded cores)",
+    )
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "rasterizer.json")
+    args = parser.parse_args()
+
+    from tambridge.export.atomic import atomic_write_text
+
+    os.environ["OMP_WAIT_POLICY"] = args.omp_wait_policy.upper()  # read by the spawned processes' OpenMP runtimes
+    started = datetime.datetime.now().isoformat(timespec="seconds")
+    load_before = os.getloadavg()
+    rows, skipped = [], []
+    for width, height in args.resolutions:
+        for count in args.counts:
+            for mode in ("forward", "forward+backward"):
+                fast = run_isolated(str(args.data), count, (width, height), "cpu", mode, args.repeats)
+                rows.append(fast)
+                if count > args.reference_max_gaussians:
+                    skipped.append({"resolution": f"{width}x{height}", "gaussians": count, "mode": mode,
+                                    "reason": f"torch reference skipped above {args.reference_max_gaussians} Gaussians"})
+                    continue
+                reference = run_isolated(str(args.data), count, (width, height), "reference", mode, args.reference_repeats)
+                reference["speedup_of_cpu_kernel"] = reference["wall_s_median"] / fast["wall_s_median"]
+                rows.append(reference)
+                print(
+                    f"{width}x{height} {count:>7} {mode:<16} cpu {fast['wall_s_median']:.4f} s  "
+                    f"reference {reference['wall_s_median']:.3f} s  x{reference['speedup_of_cpu_kernel']:.1f}",
+                    flush=True,
+                )
+
+    header = f"{'resolution':<10} {'gaussians':>9} {'mode':<16} {'backend':<9} {'wall s':>8} {'cpu s':>8} {'fps':>7} {'peak MB':>8} {'vs ref':>7}"
+    print("\n" + header + "\n" + "-" * len(header))
+    for row in rows:
+        speedup = ""
+        if row["backend"] == "reference":
+            speedup = f"x{row['speedup_of_cpu_kernel']:.1f}"
+        print(
+            f"{row['resolution']:<10} {row['gaussians']:>9} {row['mode']:<16} {row['backend']:<9} "
+            f"{row['wall_s_median']:>8.4f} {row['cpu_s_median']:>8.3f} {1 / row['wall_s_median']:>7.1f} "
+            f"{row['peak_memory_mb']:>8.0f} {speedup:>7}"
+        )
+    for row in skipped:
+        print(f"skipped: {row['resolution']} {row['gaussians']} {row['mode']}: {row['reason']}")
+    print("dense (untiled) reference: skipped at every size, an N x H x W float32 tensor is >= 15 GB at 50k / 320x240")
+
+    report = {
+        "started": started,
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "load_average_before": load_before,
+                    "load_average_after": os.getloadavg(), "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY")},
+        "data": str(args.data),
+        "source_frames": SOURCE_FRAMES,
+        "rows": rows,
+        "skipped": skipped,
+    }
+    atomic_write_text(args.out, json.dumps(report, indent=2) + "\n")
+    print(f"written {args.out}")
+
+
+if __name__ == "__main__":
+    main()
