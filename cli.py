@@ -181,6 +181,68 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
         atomic_write_text(json_path, json.dumps(summary, indent=2) + "\n")
 
 
+@main.command("export-mesh")
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--format", "mesh_format", type=click.Choice(["obj", "glb", "ply"]), default="obj", show_default=True)
+@click.option("-o", "--output", "output_path", type=click.Path(path_type=Path), help="Default: RUN_DIR/mesh.FORMAT.")
+def export_mesh(run_dir, mesh_format, output_path) -> None:
+    """Convert RUN_DIR/mesh.ply (from reconstruct) to OBJ, GLB or PLY for other tools."""
+    from tambridge.export.mesh import convert_mesh
+
+    output_path = output_path or Path(run_dir) / f"mesh.{mesh_format}"
+    mesh = convert_mesh(Path(run_dir) / "mesh.ply", output_path, mesh_format)
+    click.echo(f"wrote {output_path} ({len(mesh.vertices)} vertices, {len(mesh.faces)} triangles)")
+
+
+@main.command()
+@click.argument("sequence_dir", type=click.Path(path_type=Path))
+@click.option("-o", "--output", "output_dir", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option("--every", type=int, default=5, show_default=True, help="Use every n-th frame.")
+@click.option("--max-frames", type=int, help="Use at most this many of those frames.")
+@click.option("--camera", "camera_file", type=click.Path(path_type=Path), help="camera.yaml for a non-TUM camera.")
+def colmap(sequence_dir, output_dir, every, max_frames, camera_file) -> None:
+    """COLMAP (SIFT, sequential matching, incremental mapping) on SEQUENCE_DIR's colour images: a monocular baseline."""
+    from pipelines.colmap import colmap as run
+
+    if every < 1:
+        raise click.BadParameter(f"--every {every}: must be at least 1")
+    result = run(sequence_dir, output_dir, every=every, max_frames=max_frames, camera_file=camera_file)
+    metrics = result.metrics
+    click.echo(f"COLMAP registered {metrics['registered']} of {metrics['images']} images in {metrics['seconds']:.1f} s")
+    if result.errors is not None:
+        click.echo(f"ATE RMSE: {result.errors.ate_rmse_m * 100:.2f} cm over {result.errors.pose_count} poses "
+                   f"(Sim(3)-aligned, scale {result.errors.scale:.4f})")
+    click.echo(f"trajectory: {Path(output_dir) / 'trajectory.txt'}")
+
+
+@main.command()
+@click.argument("estimates", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--gt", "ground_truth", type=click.Path(path_type=Path), required=True, help="Ground-truth TUM file.")
+@click.option("--sim3", "sim3_names", multiple=True, metavar="FILE",
+              help="Align this one with Sim(3) (monocular); COLMAP files from 'tambridge colmap' are found by themselves.")
+@click.option("--plot", type=click.Path(path_type=Path), default=Path("compare.png"), show_default=True)
+@click.option("--json", "json_path", type=click.Path(path_type=Path), help="Write the table as JSON here.")
+def compare(estimates, ground_truth, sim3_names, plot, json_path) -> None:
+    """ATE/RPE of several TUM trajectories ESTIMATES against --gt in one table, and one plot of all."""
+    from pipelines.compare import compare_files
+    from tambridge.export.atomic import atomic_write_text
+
+    comparison = compare_files(ground_truth, estimates, sim3_names, plot)
+    click.echo(comparison.table())
+    click.echo(f"plot: {plot}")
+    if json_path:
+        atomic_write_text(json_path, json.dumps(comparison.rows(), indent=2) + "\n")
+
+
+@main.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+def report(run_dir) -> None:
+    """Rebuild RUN_DIR/report/index.html from a finished run (adds RUN_DIR/colmap/trajectory.txt when present)."""
+    from tambridge.evaluation.report import report_from_run
+
+    click.echo(f"report: {report_from_run(run_dir)}")
+
+
 @main.command()
 @click.argument("name")
 @click.option("--to", "destination", type=click.Path(path_type=Path), default=Path("data"), show_default=True)

@@ -1,0 +1,218 @@
+"""The run report: ``report/index.html`` with matplotlib PNGs beside it, readable from ``file://`` with no server.
+
+Sections appear only when their data exists: trajectory against ground truth (top view and ATE over time,
+COLMAP's Sim(3)-aligned path too when given), renders beside input frames, time per stage, Gaussian count
+over time, and the metrics table (every scalar of ``metrics.json``). Images are linked by relative paths,
+so the folder can be moved or zipped as a whole. Every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import html
+import json
+import logging
+from pathlib import Path
+from typing import Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from tambridge.evaluation.colmap import is_monocular_trajectory_file  # noqa: E402
+from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
+from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory  # noqa: E402
+from tambridge.export.atomic import atomic_path, atomic_write_text  # noqa: E402
+from tambridge.trajectory import read_tum_trajectory  # noqa: E402
+
+logger = logging.getLogger("tambridge.evaluation.report")
+
+MAX_RENDER_ROWS = 6
+
+
+@dataclasses.dataclass
+class RenderPair:
+    """An input frame and the map's render of the same view, both (H, W, 3) uint8; ``label`` names the view."""
+
+    label: str
+    input_rgb: np.ndarray
+    rendered_rgb: np.ndarray
+
+
+def write_report(
+    report_dir: Path,
+    metrics: dict,
+    trajectory_errors: dict[str, TrajectoryErrors] | None = None,
+    render_pairs: Sequence[RenderPair] = (),
+    gaussian_counts: tuple[np.ndarray, np.ndarray] | None = None,
+    title: str = "tambridge run",
+) -> Path:
+    """Write ``report_dir/index.html`` and its PNGs; returns the HTML path.
+
+    ``metrics``: the run's metrics dict (as written to metrics.json). ``trajectory_errors``: name -> errors of
+    each estimate against the same ground truth (e.g. the run's SE(3)-aligned trajectory and COLMAP's Sim(3)
+    one). ``render_pairs``: at most :data:`MAX_RENDER_ROWS` are shown, evenly spread. ``gaussian_counts``:
+    frame indices (N,) and the map's Gaussian count after each (N,).
+    """
+    report_dir = Path(report_dir)
+    report_dir.mkdir(parents=True, exist_ok=True)
+    sections = []
+    if trajectory_errors:
+        plot_trajectory_errors(trajectory_errors, report_dir / "trajectory.png", title="aligned to ground truth")
+        rows = "".join(
+            f"<tr><td>{html.escape(name)}</td><td>{errors.alignment}</td><td>{errors.pose_count}</td>"
+            f"<td>{errors.ate_rmse_m * 100:.2f}</td><td>{errors.rpe_trans_rmse_m * 100:.2f}</td></tr>"
+            for name, errors in trajectory_errors.items()
+        )
+        sections.append(
+            "<h2>Trajectory</h2>"
+            '<p>Left: top view of each estimate after alignment, ground truth dashed. Right: absolute trajectory '
+            "error over time.</p>"
+            '<img src="trajectory.png" alt="trajectory top view and ATE over time">'
+            '<table class="small"><tr><th>trajectory</th><th>alignment</th><th>poses</th><th>ATE RMSE [cm]</th>'
+            f"<th>RPE [cm/frame]</th></tr>{rows}</table>"
+        )
+    if render_pairs:
+        _plot_render_grid(render_pairs, report_dir / "renders.png")
+        sections.append(
+            "<h2>Renders</h2><p>Input frames (left) beside the Gaussian map rendered at their poses (right).</p>"
+            '<img src="renders.png" alt="renders beside input frames">'
+        )
+    stage_seconds = metrics.get("seconds_per_stage") or {}
+    if stage_seconds:
+        _plot_stage_seconds(stage_seconds, metrics.get("frontend_seconds_per_stage") or {}, report_dir / "stages.png")
+        sections.append('<h2>Time per stage</h2><img src="stages.png" alt="seconds per stage">')
+    if gaussian_counts is not None and len(gaussian_counts[0]):
+        _plot_gaussian_counts(*gaussian_counts, report_dir / "gaussians.png")
+        sections.append('<h2>Gaussians</h2><img src="gaussians.png" alt="Gaussian count over time">')
+    sections.append("<h2>Metrics</h2>" + _metrics_table(metrics))
+    generated = datetime.datetime.now().isoformat(timespec="seconds")
+    page = _PAGE.format(title=html.escape(title), generated=generated, body="\n".join(sections))
+    index = report_dir / "index.html"
+    atomic_write_text(index, page)
+    logger.info("report: %s", index)
+    return index
+
+
+def report_from_run(run_dir: Path) -> Path:
+    """Rebuild ``run_dir/report`` from a finished run's files (no renders: they live only during the run).
+
+    Reads ``metrics.json`` and ``trajectory.txt``; the ground truth is the sequence's ``groundtruth.txt``; a
+    COLMAP trajectory is added when ``run_dir/colmap/trajectory.txt`` exists (``tambridge colmap SEQ -o
+    RUN_DIR/colmap``).
+    """
+    from tambridge.errors import TambridgeError
+
+    run_dir = Path(run_dir)
+    metrics_path = run_dir / "metrics.json"
+    if not metrics_path.is_file():
+        raise TambridgeError(f"{metrics_path}: not found; is {run_dir} the output folder of a finished reconstruct run?")
+    metrics = json.loads(metrics_path.read_text())
+    errors = {}
+    ground_truth_path = Path(metrics.get("sequence", "")) / "groundtruth.txt"
+    if ground_truth_path.is_file():
+        ground_truth = read_tum_trajectory(ground_truth_path)
+        errors["tambridge (SE(3))"] = evaluate_trajectory(read_tum_trajectory(run_dir / "trajectory.txt"), ground_truth, "se3")
+        colmap_path = run_dir / "colmap" / "trajectory.txt"
+        if colmap_path.is_file():
+            align = "sim3" if is_monocular_trajectory_file(colmap_path) else "se3"
+            errors[f"COLMAP ({'Sim(3)' if align == 'sim3' else 'SE(3)'})"] = evaluate_trajectory(
+                read_tum_trajectory(colmap_path), ground_truth, align
+            )
+    return write_report(run_dir / "report", metrics, errors, title=f"tambridge: {metrics.get('sequence', run_dir)}")
+
+
+def flatten_metrics(metrics: dict, prefix: str = "") -> list[tuple[str, object]]:
+    """``(dotted key, value)`` for every leaf of a nested metrics dict, in insertion order."""
+    rows = []
+    for key, value in metrics.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            rows += flatten_metrics(value, f"{name}.")
+        else:
+            rows.append((name, value))
+    return rows
+
+
+def format_metric(value: object) -> str:
+    """How a metric value is shown: floats with 6 significant digits, None as a dash, lists as JSON."""
+    if value is None:
+        return "-"
+    if isinstance(value, (bool, int, str)):
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return json.dumps(value)
+
+
+def _metrics_table(metrics: dict) -> str:
+    rows = "".join(
+        f'<tr><td>{html.escape(name)}</td><td class="value" data-key="{html.escape(name)}">'
+        f"{html.escape(format_metric(value))}</td></tr>"
+        for name, value in flatten_metrics(metrics)
+    )
+    return f'<table id="metrics"><tr><th>metric</th><th>value</th></tr>{rows}</table>'
+
+
+def _save(figure, path: Path) -> None:
+    figure.tight_layout()
+    with atomic_path(path) as temp_path:
+        figure.savefig(temp_path, format="png", dpi=90)
+    plt.close(figure)
+
+
+def _plot_render_grid(pairs: Sequence[RenderPair], path: Path) -> None:
+    chosen = [pairs[i] for i in np.unique(np.linspace(0, len(pairs) - 1, min(len(pairs), MAX_RENDER_ROWS)).astype(int))]
+    figure, axes = plt.subplots(len(chosen), 2, figsize=(8, 3 * len(chosen)), squeeze=False)
+    for row, pair in zip(axes, chosen):
+        for axis, image, kind in ((row[0], pair.input_rgb, "input"), (row[1], pair.rendered_rgb, "render")):
+            axis.imshow(image)
+            axis.set_title(f"{pair.label}: {kind}", fontsize=9)
+            axis.axis("off")
+    _save(figure, path)
+
+
+def _plot_stage_seconds(stage_seconds: dict, frontend_seconds: dict, path: Path) -> None:
+    panels = [("pipeline stages", stage_seconds)] + ([("frontend stages", frontend_seconds)] if frontend_seconds else [])
+    figure, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 3.5), squeeze=False)
+    for axis, (title, seconds) in zip(axes[0], panels):
+        names = list(seconds)
+        axis.barh(names, [seconds[name] for name in names], color="tab:blue")
+        axis.invert_yaxis()
+        axis.set_xlabel("seconds")
+        axis.set_title(title)
+    _save(figure, path)
+
+
+def _plot_gaussian_counts(frame_indices: np.ndarray, counts: np.ndarray, path: Path) -> None:
+    figure, axis = plt.subplots(figsize=(7, 3.5))
+    axis.plot(np.asarray(frame_indices), np.asarray(counts), color="tab:green")
+    axis.set_xlabel("frame")
+    axis.set_ylabel("Gaussians")
+    axis.set_title("Gaussian count over time")
+    _save(figure, path)
+
+
+_PAGE = """<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>{title}</title>
+<style>
+body {{ font-family: sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }}
+img {{ max-width: 100%; border: 1px solid #ddd; }}
+table {{ border-collapse: collapse; margin: 1em 0; }}
+td, th {{ border: 1px solid #ccc; padding: 0.2em 0.6em; text-align: left; font-size: 0.9em; }}
+td.value {{ font-family: monospace; }}
+</style>
+</head>
+<body>
+<h1>{title}</h1>
+<p>Generated {generated} by tambridge.</p>
+{body}
+</body>
+</html>
+"""

@@ -1,0 +1,100 @@
+"""The run report opens in headless Chromium from file://: every image loads, the metrics table shows the run's numbers."""
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tambridge.evaluation.report import RenderPair, flatten_metrics, format_metric, write_report
+from tambridge.evaluation.trajectory import evaluate_trajectory
+from tambridge.geometry import exp_se3
+from tambridge.trajectory import Trajectory
+
+CHROMIUM_FLAGS = (
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+    "--disable-sync", "--no-first-run",
+)
+
+
+def _chromium_paths() -> tuple[str, str]:
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    driver = shutil.which("chromedriver")
+    if browser is None or driver is None:
+        pytest.skip("chromium and chromedriver are not installed (Debian: apt-get install -y chromium chromium-driver)")
+    return browser, driver
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    """Headless Chromium driven through selenium with the system chromedriver (works offline)."""
+    browser_path, driver_path = _chromium_paths()
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = browser_path
+    for flag in CHROMIUM_FLAGS:
+        options.add_argument(flag)
+    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
+    driver = webdriver.Chrome(service=Service(executable_path=driver_path), options=options)
+    yield driver
+    driver.quit()
+
+
+def _open(browser, index: Path) -> dict:
+    """Load the page from file:// and read back what a person would see: images and the metrics table."""
+    browser.get(index.resolve().as_uri())
+    return browser.execute_script(
+        """
+        const images = Array.from(document.images).map(i => ({src: i.getAttribute('src'), complete: i.complete,
+                                                              width: i.naturalWidth}));
+        const cells = {};
+        document.querySelectorAll('#metrics td.value').forEach(td => { cells[td.dataset.key] = td.textContent; });
+        const headings = Array.from(document.querySelectorAll('h2')).map(h => h.textContent);
+        return {images: images, cells: cells, headings: headings};
+        """
+    )
+
+
+def _perturbed(reference: Trajectory, seed: int, sigma_m: float, scale: float = 1.0) -> Trajectory:
+    rng = np.random.default_rng(seed)
+    poses = []
+    for pose in reference.world_from_camera:
+        moved = pose @ exp_se3(np.concatenate([rng.normal(0, sigma_m, 3), rng.normal(0, 0.002, 3)]))
+        moved[:3, 3] *= scale
+        poses.append(moved)
+    return Trajectory(reference.timestamps_s, np.stack(poses))
+
+
+def test_full_report_loads_every_image(browser, tmp_path):
+    from tambridge.io.synthetic import loop_path
+
+    reference = Trajectory(np.arange(30) / 30.0, loop_path(30))
+    errors = {
+        "tambridge (SE(3))": evaluate_trajectory(_perturbed(reference, 0, 0.01), reference, "se3"),
+        "COLMAP (Sim(3))": evaluate_trajectory(_perturbed(reference, 1, 0.005, scale=0.3), reference, "sim3"),
+    }
+    rng = np.random.default_rng(0)
+    pairs = [RenderPair(f"frame {i}", rng.integers(0, 255, (24, 32, 3), np.uint8), rng.integers(0, 255, (24, 32, 3), np.uint8))
+             for i in range(9)]
+    metrics = {"frames": 30, "fps_end_to_end": 3.25, "seconds_per_stage": {"read": 0.5, "tracking": 4.0, "mapping": 20.0},
+               "frontend_seconds_per_stage": {"features": 1.0, "pnp": 2.0},
+               "trajectory": errors["tambridge (SE(3))"].summary()}
+    index = write_report(tmp_path / "report", metrics, errors, pairs, (np.arange(30), np.arange(30) * 100))
+    page = _open(browser, index)
+    assert {image["src"] for image in page["images"]} == {"trajectory.png", "renders.png", "stages.png", "gaussians.png"}
+    assert all(image["complete"] and image["width"] > 0 for image in page["images"]), page["images"]
+    assert page["headings"] == ["Trajectory", "Renders", "Time per stage", "Gaussians", "Metrics"]
+    assert page["cells"]["trajectory.ate_rmse_m"] == format_metric(errors["tambridge (SE(3))"].ate_rmse_m)
+    assert page["cells"]["fps_end_to_end"] == "3.25"
+    assert len(page["cells"]) == len(flatten_metrics(metrics))
+    assert not list((tmp_path / "report").glob("*.partial"))
+
+
+def test_report_without_optional_inputs_skips_their_sections(browser, tmp_path):
+    index = write_report(tmp_path / "report", {"frames": 3, "trajectory": None})
+    page = _open(browser, index)
+    assert page["images"] == []
+    assert page["headings"] == ["Metrics"]
+    assert page["cells"] == {"frames": "3", "trajectory": "-"}
