@@ -147,7 +147,8 @@ def measure(data: str, count: int, resolution: tuple[int, int], backend: str, mo
     gc.collect()
     reset_peak_rss()
     baseline_mb = status_mb("VmRSS")
-    step(gaussians)  # warm-up at full size
+    if backend == "cpu":
+        step(gaussians)  # warm-up at full size (allocator pools); the torch reference takes seconds, once is enough
     stage_s.clear()
     walls, cpus = [], []
     for _ in range(repeats):
@@ -186,8 +187,8 @@ def main() -> None:
     parser.add_argument("--resolutions", type=lambda s: [parse_resolution(r) for r in s.split(",")], default=[(320, 240), (640, 480)])
     parser.add_argument("--repeats", type=int, default=5, help="timed runs of the CPU kernel per case (after a warm-up)")
     parser.add_argument("--reference-repeats", type=int, default=1)
-    parser.add_argument("--reference-max-gaussians", type=int, default=500_000,
-                        help="skip the torch reference above this many Gaussians (it takes seconds to minutes)")
+    parser.add_argument("--reference-max-gaussians", type=int, default=200_000,
+                        help="skip the torch reference above this many Gaussians (at 500k it takes minutes per call)")
     parser.add_argument(
         "--omp-wait-policy", choices=("passive", "active"), default="passive",
         help="OpenMP workers' idle policy in the measuring processes (default passive: on a machine shared with other "

@@ -15,7 +15,7 @@ rule: the Gaussian that would bring T below ``TRANSMITTANCE_MIN`` is left out), 
 The backward pass is the 3DGS reverse pass: walking each tile's list back to front, every pixel recovers
 ``T_i = T_{i+1} / (1 - alpha_i)`` from the final transmittance stored by the forward pass and keeps the sums of
 what lies behind the current Gaussian (``acc``), which gives ``dC/dalpha_i = T_i (c_i - acc_i) - T_final bg / (1 - alpha_i)``
-(likewise for depth and silhouette). Gradients are written per list entry, so threads never share a slot, then
+(likewise for depth and silhouette; only the dot product of ``acc`` with the pixel's gradients is kept). Gradients are written per list entry, so threads never share a slot, then
 summed per Gaussian. All arithmetic is float64.
 """
 
@@ -139,7 +139,13 @@ def _bin_tiles(packed, order, width, height, tile_px, tiles_x, tiles_y):
 def bin_tiles(packed: np.ndarray, width: int, height: int) -> TileBins:
     """Bin packed Gaussians (N, PACKED_COLUMNS) float64 into tiles, front to back; Gaussians behind the near
     plane or off the image are left out."""
-    visible = np.flatnonzero((packed[:, DEPTH] > NEAR_PLANE_M) & (packed[:, RADIUS] > 0))
+    reach = SIGMA_CUTOFF * packed[:, RADIUS] + BOX_SLACK_PX
+    u, v = packed[:, U], packed[:, V]
+    # Off-image Gaussians leave here, before the sort: a map is usually much larger than one view.
+    visible = np.flatnonzero(
+        (packed[:, DEPTH] > NEAR_PLANE_M) & (packed[:, RADIUS] > 0)
+        & (u + reach >= 0) & (u - reach <= width - 1) & (v + reach >= 0) & (v - reach <= height - 1)
+    )  # fmt: skip
     order = visible[depth_order(packed[visible, DEPTH])]
     tiles_x, tiles_y = -(-width // TILE_PX), -(-height // TILE_PX)
     entry_rows, entry_slots, tile_starts, slot_starts = _bin_tiles(packed, order, width, height, TILE_PX, tiles_x, tiles_y)
@@ -253,8 +259,9 @@ def _backward(entry_rows, entry_slots, tile_starts, tiles_x, tile_px, background
         transmittance = transmittance_final[y_lo : y_hi + 1, x_lo : x_hi + 1].copy()
         used = contributors[y_lo : y_hi + 1, x_lo : x_hi + 1]
         pixel_grads = np.empty((tile_h, tile_w, 5))  # dL/d(red, green, blue, depth, silhouette) of the pixel
-        # acc: what lies behind the current Gaussian, per unit transmittance in front of it (colour, depth, silhouette).
-        acc = np.zeros((tile_h, tile_w, 5))
+        # behind: what lies behind the current Gaussian per unit transmittance in front of it (colour, depth and
+        # silhouette), already dotted with the pixel's gradients; it is updated linearly, so one scalar suffices.
+        behind = np.zeros((tile_h, tile_w))
         # T_final * dL/dT_final through the background term C += T_final * bg.
         background_term = np.zeros((tile_h, tile_w))
         for ly in range(tile_h):
@@ -294,24 +301,13 @@ def _backward(entry_rows, entry_slots, tile_starts, tiles_x, tile_px, background
                     weight = alpha * t
                     g_red, g_green, g_blue = pixel_grads[ly, lx, 0], pixel_grads[ly, lx, 1], pixel_grads[ly, lx, 2]
                     g_depth, g_silhouette = pixel_grads[ly, lx, 3], pixel_grads[ly, lx, 4]
-                    a_red, a_green, a_blue = acc[ly, lx, 0], acc[ly, lx, 1], acc[ly, lx, 2]
-                    a_depth, a_silhouette = acc[ly, lx, 3], acc[ly, lx, 4]
                     grad_red += weight * g_red
                     grad_green += weight * g_green
                     grad_blue += weight * g_blue
                     grad_z += weight * g_depth
-                    grad_alpha = t * (
-                        (red - a_red) * g_red
-                        + (green - a_green) * g_green
-                        + (blue - a_blue) * g_blue
-                        + (z - a_depth) * g_depth
-                        + (1.0 - a_silhouette) * g_silhouette
-                    ) - background_term[ly, lx] * inv_one_minus_alpha
-                    acc[ly, lx, 0] = a_red + alpha * (red - a_red)
-                    acc[ly, lx, 1] = a_green + alpha * (green - a_green)
-                    acc[ly, lx, 2] = a_blue + alpha * (blue - a_blue)
-                    acc[ly, lx, 3] = a_depth + alpha * (z - a_depth)
-                    acc[ly, lx, 4] = a_silhouette + alpha * (1.0 - a_silhouette)
+                    own = red * g_red + green * g_green + blue * g_blue + z * g_depth + g_silhouette
+                    grad_alpha = t * (own - behind[ly, lx]) - background_term[ly, lx] * inv_one_minus_alpha
+                    behind[ly, lx] += alpha * (own - behind[ly, lx])
                     if raw_alpha > ALPHA_MAX:
                         continue  # clamped: alpha does not depend on the parameters here
                     grad_opacity += grad_alpha * x_falloff[kx] * y_falloff[ky]

@@ -44,6 +44,7 @@ def render(
 ) -> RenderOutput:
     """Render ``gaussians`` seen by ``camera`` at ``world_from_camera @ exp_se3(pose_delta)``.
 
+    camera: pinhole intrinsics of the rendered image (its distortion is ignored: frames are undistorted by the reader).
     world_from_camera: (4, 4) pose (float64 preferred). pose_delta: (6,) twist ``(rho, phi)`` applied on the right,
     in the camera frame, or None. background_rgb: colour behind the Gaussians. Returns rgb (H, W, 3), depth_m (H, W)
     (unnormalised, see :mod:`tambridge.gaussians.model`) and silhouette (H, W), in the Gaussians' dtype and device;
@@ -81,7 +82,7 @@ class _CpuComposite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means_px, radii_px, depths_m, opacity, rgb, width, height, background_rgb):
-        columns = [means_px, radii_px[:, None], depths_m[:, None], opacity[:, None], rgb]
+        columns = [means_px, radii_px[:, None], depths_m[:, None], opacity[:, None], rgb]  # cpu_kernel's column order
         packed = torch.cat([column.detach().to("cpu", torch.float64) for column in columns], dim=1).numpy()
         background = background_rgb.detach().to("cpu", torch.float64).numpy()
         bins = cpu_kernel.bin_tiles(packed, width, height)
@@ -99,4 +100,8 @@ class _CpuComposite(torch.autograd.Function):
         image_grads = [grad.detach().to("cpu", torch.float64).contiguous().numpy() for grad in (grad_rgb, grad_depth, grad_silhouette)]
         grads = torch.from_numpy(cpu_kernel.composite_backward(bins, state, background, *image_grads))
         grads = grads.to(device=ctx.device, dtype=ctx.dtype)
-        return grads[:, 0:2], grads[:, 2], grads[:, 3], grads[:, 4], grads[:, 5:8], None, None, None
+        k = cpu_kernel
+        return (
+            grads[:, k.U : k.V + 1], grads[:, k.RADIUS], grads[:, k.DEPTH], grads[:, k.OPACITY], grads[:, k.RED : k.RED + 3],
+            None, None, None,
+        )  # fmt: skip
