@@ -175,6 +175,24 @@ def test_silhouette_in_unit_interval_and_behind_camera_skipped(backend):
         assert (grad[behind] == 0).all(), name
 
 
+def test_huge_splats_near_the_camera_match_reference():
+    """Splats far larger than the image, with means projecting far outside it (no integer overflow in the boxes)."""
+    camera = camera_of(40, 30)
+    gaussians = random_gaussians(200, seed=9)
+    near = torch.tensor([[0.0, 0.0, 0.02], [100.0, -50.0, 1.0], [-3.0, 2.0, 0.011]])
+    gaussians = GaussianTensors(
+        means_m=torch.cat([gaussians.means_m, near]),
+        rgb=torch.cat([gaussians.rgb, torch.rand(3, 3, generator=torch.Generator().manual_seed(1))]),
+        log_radii_m=torch.cat([gaussians.log_radii_m, torch.log(torch.tensor([0.01, 1e17, 0.5]))]),
+        opacity_logits=torch.cat([gaussians.opacity_logits, torch.tensor([-2.0, -3.0, -2.5])]),
+    )
+    fast = render(gaussians, camera, np.eye(4), background_rgb=BACKGROUND, backend="cpu")
+    reference = render(gaussians, camera, np.eye(4), background_rgb=BACKGROUND, backend="reference")
+    assert (fast.silhouette > 0.05).all()  # the huge splats cover every pixel
+    for name in ("rgb", "depth_m", "silhouette"):
+        torch.testing.assert_close(getattr(fast, name), getattr(reference, name), atol=1e-5, rtol=0)
+
+
 def test_tiled_reference_equals_dense_reference():
     """The benchmark's tiled torch baseline culls per tile exactly: same maps as the dense reference."""
     camera = camera_of(50, 35)

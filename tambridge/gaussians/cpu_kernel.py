@@ -84,10 +84,11 @@ def depth_order(depths: np.ndarray) -> np.ndarray:
 def _pixel_box(u, v, radius, x_lo, x_hi, y_lo, y_hi):
     """Inclusive pixel box of the 3-sigma disc at (u, v), clipped to [x_lo, x_hi] x [y_lo, y_hi]."""
     reach = SIGMA_CUTOFF * radius + BOX_SLACK_PX
-    x0 = max(math.ceil(u - reach), x_lo)
-    x1 = min(math.floor(u + reach), x_hi)
-    y0 = max(math.ceil(v - reach), y_lo)
-    y1 = min(math.floor(v + reach), y_hi)
+    # Clamp before rounding: a huge splat (a Gaussian at the near plane) must not overflow the int conversion.
+    x0 = max(math.ceil(max(u - reach, x_lo - 1.0)), x_lo)
+    x1 = min(math.floor(min(u + reach, x_hi + 1.0)), x_hi)
+    y0 = max(math.ceil(max(v - reach, y_lo - 1.0)), y_lo)
+    y1 = min(math.floor(min(v + reach, y_hi + 1.0)), y_hi)
     return x0, x1, y0, y1
 
 

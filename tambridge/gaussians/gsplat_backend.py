@@ -44,11 +44,10 @@ def render_gsplat(
     )
     quats = torch.zeros(count, 4, dtype=dtype, device=device)
     quats[:, 0] = 1.0  # identity rotation, w first
-    background = torch.cat([background_rgb.to(device=device, dtype=dtype), torch.zeros(1, dtype=dtype, device=device)])
     colours, alphas, _ = gsplat.rasterization(
         means=means_cam_m,
         quats=quats,
-        scales=torch.exp(gaussians.log_radii_m)[:, None].expand(count, 3),
+        scales=torch.exp(gaussians.log_radii_m)[:, None].repeat(1, 3),
         opacities=torch.sigmoid(gaussians.opacity_logits),
         colors=gaussians.rgb,
         viewmats=torch.eye(4, dtype=dtype, device=device)[None],
@@ -57,7 +56,7 @@ def render_gsplat(
         height=camera.height,
         near_plane=NEAR_PLANE_M,
         eps2d=0.0,
-        backgrounds=background[None],
+        backgrounds=background_rgb.to(device=device, dtype=dtype)[None],  # gsplat appends the depth channel's 0
         render_mode="RGB+D",
     )
     return RenderOutput(rgb=colours[0, :, :, :3], depth_m=colours[0, :, :, 3], silhouette=alphas[0, :, :, 0])
