@@ -106,3 +106,22 @@ def test_download_fetches_and_unpacks_from_a_local_mirror(synthetic_sequence_dir
         server.shutdown()
     bad_name = CliRunner().invoke(main, ["download", "desk", "--to", str(tmp_path / "data")])
     assert bad_name.exit_code == 2 and "expected a TUM sequence name" in bad_name.output
+
+
+def test_atomic_writes_leave_no_temp_files_and_normal_permissions(tmp_path):
+    import os
+
+    from tambridge.export.atomic import atomic_write_text
+
+    target = tmp_path / "result.txt"
+    atomic_write_text(target, "whole")
+    with pytest.raises(RuntimeError):
+        from tambridge.export.atomic import atomic_path
+
+        with atomic_path(tmp_path / "partial.txt") as temp_path:
+            temp_path.write_text("half")
+            raise RuntimeError("killed mid-write")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result.txt"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert target.stat().st_mode & 0o777 == 0o666 & ~umask
