@@ -10,6 +10,7 @@ import json
 import logging
 import time
 from pathlib import Path
+from typing import Callable
 
 from tqdm import tqdm
 
@@ -18,10 +19,12 @@ from tambridge.config import Config, ConfigError, to_yaml
 from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.export.atomic import atomic_write_text
 from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
-from tambridge.frontend.types import Frontend, FrontendResult
-from tambridge.io.tum import RgbdSequence, open_sequence
+from tambridge.frontend.types import Frontend, FrontendResult, TrackResult
+from tambridge.io.tum import Frame, RgbdSequence, open_sequence
 from tambridge.runlog import RunLog, peak_memory_mb
 from tambridge.trajectory import Trajectory, write_tum_trajectory
+
+from pipelines.mapping import MappingStage, mapping_metrics
 
 logger = logging.getLogger("tambridge.pipelines.reconstruct")
 
@@ -44,11 +47,24 @@ def make_frontend(config: Config, camera: Camera) -> Frontend:
     raise ConfigError(f"frontend.kind={kind!r}: expected one of open3d_f2f")
 
 
-def track_sequence(sequence: RgbdSequence, frontend: Frontend, run_log: RunLog, progress: bool) -> FrontendResult:
-    """Feed every frame to the frontend in order; returns its final result (after loop closure and global BA)."""
+def track_sequence(
+    sequence: RgbdSequence,
+    frontend: Frontend,
+    run_log: RunLog,
+    progress: bool,
+    on_keyframe: Callable[[TrackResult, Frame], None] | None = None,
+) -> FrontendResult:
+    """Feed every frame to the frontend in order; returns its final result (after loop closure and global BA).
+
+    ``on_keyframe(result, frame)`` is called after each frame that made a keyframe (the online mapping); its time
+    is not counted as tracking.
+    """
+    for frame in tqdm(sequence, total=len(sequence), desc="tracking", unit="frame", disable=not progress):
+        with run_log.stage("tracking"):
+            result = frontend.track(frame)
+        if on_keyframe is not None and result.keyframe is not None:
+            on_keyframe(result, frame)
     with run_log.stage("tracking"):
-        for frame in tqdm(sequence, total=len(sequence), desc="tracking", unit="frame", disable=not progress):
-            frontend.track(frame)
         return frontend.finish()
 
 
@@ -56,7 +72,7 @@ def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: 
     """Reconstruct a TUM-layout sequence into ``output_dir`` (see DESIGN.md for the folder's contents)."""
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
-    for stale in ("metrics.json", "trajectory.txt", "keyframes.txt"):
+    for stale in ("metrics.json", "trajectory.txt", "keyframes.txt", "splats.ply"):
         # A re-run into the same folder must not leave an earlier run's results looking like this run's.
         (output_dir / stale).unlink(missing_ok=True)
     run_log = RunLog(output_dir / "run.log")
@@ -72,10 +88,18 @@ def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: 
                 max_frames=config.input.max_frames,
             )
         logger.info("%d frames, camera %s", len(sequence), sequence.camera)
-        tracking = track_sequence(sequence, make_frontend(config, sequence.camera), run_log, progress)
+        frontend = make_frontend(config, sequence.camera)
+        mapping = MappingStage(sequence, config, run_log) if config.mapper.enabled else None
+        on_keyframe = None
+        if mapping is not None:
+            on_keyframe = lambda result, frame: mapping.on_keyframe(result.keyframe, frame, frontend.keyframe_poses())  # noqa: E731
+        tracking = track_sequence(sequence, frontend, run_log, progress, on_keyframe)
         trajectory, keyframes = tracking.trajectory, tracking.keyframe_trajectory
         write_tum_trajectory(output_dir / "trajectory.txt", trajectory)
         write_tum_trajectory(output_dir / "keyframes.txt", keyframes)
+        if mapping is not None:
+            mapping.finish(tracking.keyframe_poses, output_dir / "splats.ply")
+        # End to end = what a user waits for to get trajectory and map; the rendering evaluation below is not part of it.
         total_s = time.perf_counter() - started
         metrics = {
             "sequence": str(sequence_dir),
@@ -94,6 +118,11 @@ def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: 
             "warnings": run_log.warnings,
             "trajectory": None,
         }
+        if mapping is not None:
+            metrics.update(mapping_metrics(mapping, tracking, sequence, config, run_log))
+            # The evaluation ran after the figures above were taken: refresh what it adds to.
+            metrics.update(seconds_per_stage=dict(run_log.stage_seconds), peak_memory_mb=peak_memory_mb(),
+                           warnings=run_log.warnings)
         if sequence.ground_truth is not None:
             errors = evaluate_trajectory(trajectory, sequence.ground_truth, align="se3")
             metrics["trajectory"] = errors.summary()

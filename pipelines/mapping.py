@@ -1,0 +1,297 @@
+"""The mapping stage of ``reconstruct``: keyframe events -> Fusion Bridge -> online Gaussian map, then evaluation.
+
+``MappingStage.on_keyframe`` runs online, as the frontend emits keyframes: view selection (eq. 3), joint pose
+refinement against the current map, densification, a few Adam steps over a window of overlapping views, pruning.
+``MappingStage.finish`` moves every view to the frontend's final (loop-corrected) keyframe poses and runs a last
+pass over all views. Frames are not kept: a small cache holds the window's images at the mapping resolution and
+anything else is read again from the sequence.
+
+Rendering poses. A mapping view's pose is its keyframe's pose times the bridge's correction
+``keyframe_from_view`` (identity with the bridge off), so frontend corrections and the bridge compose. Any other
+frame is rendered at ``view @ inverse(keyframe) @ frame`` with the frontend's poses of the frame and of the latest
+view keyframe at or before it: the frontend's relative motion, anchored at the refined view.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import dataclasses
+import logging
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numba
+import numpy as np
+import torch
+
+from tambridge.bridge.refinement import RefinementResult, refine_pose
+from tambridge.bridge.view_selection import Selection, select_view
+from tambridge.config import Config
+from tambridge.evaluation.rendering import RenderingScores, score_renders
+from tambridge.frontend.types import KeyframeEvent
+from tambridge.gaussians.mapper import GaussianMap, ViewImages, backproject
+from tambridge.geometry import inverse, transform_points
+from tambridge.evaluation.trajectory import ate_rmse_m
+from tambridge.frontend.types import FrontendResult
+from tambridge.gaussians.ply import save_ply
+from tambridge.io.tum import Frame, RgbdSequence
+from tambridge.runlog import RunLog
+from tambridge.trajectory import Trajectory
+
+logger = logging.getLogger("tambridge.pipelines.mapping")
+
+OVERLAP_SAMPLES = 256
+"""Pixels of the new view projected into earlier views to measure their overlap."""
+TORCH_THREADS = 1
+"""torch intra-op threads while mapping. The mapper's torch ops are small (one view's Gaussians) and torch's
+OpenMP pool fights the rasteriser's numba OpenMP threads for the cores: on 2 cores, one Adam step at 160x120
+took 1.38 s with 2 torch threads and 0.037 s with 1."""
+
+
+@contextlib.contextmanager
+def compute_threads(torch_count: int, numba_count: int) -> Iterator[None]:
+    """Run a block with ``torch_count`` torch intra-op threads and ``numba_count`` numba threads (0: numba's
+    default, all cores), then restore the previous counts."""
+    previous = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(torch_count)
+    numba.set_num_threads(numba_count if numba_count > 0 else numba.config.NUMBA_NUM_THREADS)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous[0])
+        numba.set_num_threads(previous[1])
+
+
+@dataclasses.dataclass
+class MappingView:
+    """A keyframe taken as a mapping view. ``keyframe_from_view`` (4x4) is the bridge's pose correction."""
+
+    keyframe_id: int
+    frame_index: int
+    keyframe_from_view: np.ndarray
+    selection: Selection
+    refinement: RefinementResult | None
+
+
+def resize_frame(frame: Frame, scale: float) -> ViewImages:
+    """A frame as mapper images at ``scale``: area-averaged colour, nearest-neighbour depth (no invented surfaces)."""
+    height, width = frame.depth_m.shape
+    size = (int(round(width * scale)), int(round(height * scale)))
+    rgb, depth_m = frame.rgb, frame.depth_m
+    if size != (width, height):
+        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+        depth_m = cv2.resize(depth_m, size, interpolation=cv2.INTER_NEAREST)
+    return ViewImages(torch.from_numpy(rgb.astype(np.float32) / 255.0), torch.from_numpy(np.ascontiguousarray(depth_m)))
+
+
+class MappingStage:
+    """Fusion Bridge + online mapper over one sequence (state across keyframes)."""
+
+    def __init__(self, sequence: RgbdSequence, config: Config, run_log: RunLog) -> None:
+        self.sequence = sequence
+        self.config = config
+        self.run_log = run_log
+        self.camera = sequence.camera.scaled(config.mapper.resolution_scale)
+        self.map = GaussianMap(config.mapper)
+        self.views: list[MappingView] = []
+        self.keyframe_poses: dict[int, np.ndarray] = {}
+        self.keyframe_frame_indices: dict[int, int] = {}
+        self.selections: collections.Counter = collections.Counter()
+        self._cache: collections.OrderedDict[int, ViewImages] = collections.OrderedDict()
+        self._rng = np.random.default_rng(config.seed)
+
+    def _threads(self) -> contextlib.AbstractContextManager:
+        return compute_threads(TORCH_THREADS, self.config.mapper.kernel_threads)
+
+    # ---- poses ---------------------------------------------------------------------------------------------
+
+    def view_pose(self, view: MappingView) -> np.ndarray:
+        """Current 4x4 ``world_from_camera`` of a mapping view: its keyframe's pose times the bridge correction."""
+        return self.keyframe_poses[view.keyframe_id] @ view.keyframe_from_view
+
+    def update_keyframe_poses(self, keyframe_poses: dict[int, np.ndarray]) -> None:
+        """Take the frontend's latest keyframe poses; the views' Gaussians move with their keyframes."""
+        for keyframe_id, pose in keyframe_poses.items():
+            if keyframe_id in self.keyframe_poses:
+                self.keyframe_poses[keyframe_id] = np.asarray(pose, np.float64)
+        for view in self.views:
+            self.map.set_anchor_pose(view.keyframe_id, self.view_pose(view))
+
+    # ---- images --------------------------------------------------------------------------------------------
+
+    def images(self, frame_index: int, frame: Frame | None = None) -> ViewImages:
+        """A view's images at the mapping resolution, from the cache or read again from the sequence."""
+        if frame_index in self._cache:
+            self._cache.move_to_end(frame_index)
+            return self._cache[frame_index]
+        images = resize_frame(frame if frame is not None else self.sequence[frame_index], self.config.mapper.resolution_scale)
+        self._cache[frame_index] = images
+        while len(self._cache) > self.config.mapper.window_size + 1:
+            self._cache.popitem(last=False)
+        return images
+
+    # ---- online --------------------------------------------------------------------------------------------
+
+    def on_keyframe(self, event: KeyframeEvent, frame: Frame, keyframe_poses: dict[int, np.ndarray]) -> None:
+        """One keyframe from the frontend: select, refine, map. ``keyframe_poses`` are the frontend's current ones."""
+        with self._threads():
+            self._on_keyframe(event, frame, keyframe_poses)
+
+    def _on_keyframe(self, event: KeyframeEvent, frame: Frame, keyframe_poses: dict[int, np.ndarray]) -> None:
+        bridge = self.config.bridge
+        self.keyframe_frame_indices[event.keyframe_id] = event.frame_index
+        selection = select_view(event, not self.keyframe_poses, bridge.enabled, bridge.alpha, bridge.beta)
+        self.selections[selection.name] += 1
+        self.keyframe_poses[event.keyframe_id] = np.asarray(event.world_from_camera, np.float64)
+        self.update_keyframe_poses(keyframe_poses)
+        if not selection.selected:
+            return
+        images = self.images(event.frame_index, frame)
+        refinement = None
+        keyframe_from_view = np.eye(4)
+        if bridge.enabled and len(self.map):
+            with self.run_log.stage("bridge"):
+                keypoints = (np.asarray(event.keypoints_px, np.float64).reshape(-1, 2) + 0.5) * self.config.mapper.resolution_scale - 0.5
+                refinement = refine_pose(self.map.gaussians(), self.camera, self.keyframe_poses[event.keyframe_id],
+                                         images.rgb, images.depth_m, event.points_world_m, keypoints, bridge,
+                                         backend=self.config.mapper.backend)
+                keyframe_from_view = inverse(self.keyframe_poses[event.keyframe_id]) @ refinement.world_from_camera
+        view = MappingView(event.keyframe_id, event.frame_index, keyframe_from_view, selection, refinement)
+        with self.run_log.stage("mapping"):
+            self.map_view(view, images)
+
+    def map_view(self, view: MappingView, images: ViewImages) -> None:
+        """Add a view to the map: densify, optimise over it and its overlapping window, prune."""
+        world_from_camera = self.view_pose(view)
+        self.map.set_anchor_pose(view.keyframe_id, world_from_camera)
+        rendered = self.map.render(self.camera, world_from_camera) if len(self.map) else None
+        added = self.map.densify(view.keyframe_id, self.camera, images, rendered)
+        window = self.overlapping_views(world_from_camera, images)
+        self.views.append(view)
+        views = [(world_from_camera, images)] + [(self.view_pose(v), self.images(v.frame_index)) for v in window]
+        # Every other step on the new view, the others cycle through the earlier overlapping ones.
+        schedule = [0 if k % 2 == 0 or not window else 1 + (k // 2) % len(window) for k in range(self.config.mapper.iterations)]
+        losses = self.map.optimise(self.camera, views, schedule)
+        removed = self.map.prune(self.camera, world_from_camera)
+        logger.info("view %d (frame %d, %s): +%d -%d Gaussians -> %d, window %s, loss %.4f -> %.4f", len(self.views) - 1,
+                    view.frame_index, view.selection.value, added, removed, len(self.map),
+                    [v.frame_index for v in window], losses[0] if losses else float("nan"), losses[-1] if losses else float("nan"))
+
+    def overlapping_views(self, world_from_camera: np.ndarray, images: ViewImages) -> list[MappingView]:
+        """The ``window_size - 1`` earlier views that see the most of this view's points (at least one point)."""
+        if not self.views or self.config.mapper.window_size <= 1:
+            return []
+        points_camera = backproject(images.depth_m, self.camera, images.depth_m > 0).numpy().astype(np.float64)
+        if len(points_camera) == 0:
+            return []
+        sample = points_camera[self._rng.choice(len(points_camera), min(OVERLAP_SAMPLES, len(points_camera)), replace=False)]
+        points_world = transform_points(world_from_camera, sample)
+        overlaps = []
+        for view in self.views:
+            points_view = transform_points(inverse(self.view_pose(view)), points_world)
+            z = np.maximum(points_view[:, 2], 1e-6)
+            u = self.camera.fx * points_view[:, 0] / z + self.camera.cx
+            v = self.camera.fy * points_view[:, 1] / z + self.camera.cy
+            inside = (points_view[:, 2] > 0) & (u >= 0) & (u <= self.camera.width - 1) & (v >= 0) & (v <= self.camera.height - 1)
+            overlaps.append(float(inside.mean()))
+        order = np.argsort(overlaps)[::-1][: self.config.mapper.window_size - 1]
+        return [self.views[i] for i in order if overlaps[i] > 0]
+
+    # ---- after the frontend ----------------------------------------------------------------------------------
+
+    def finish(self, keyframe_poses: dict[int, np.ndarray], splats_path: Path | None) -> None:
+        """Move every view to the final keyframe poses, run ``final_iterations_per_view`` more steps on each view
+        (in random order), prune, and write the map to ``splats_path`` (INRIA layout, atomically; None: not written)."""
+        with self.run_log.stage("final_refinement"), self._threads():
+            self.update_keyframe_poses(keyframe_poses)
+            # Views in random order, a window's worth at a time (bounded memory), each view in turn within a chunk.
+            order = [self.views[i] for i in self._rng.permutation(len(self.views))]
+            chunk_size = max(1, self.config.mapper.window_size)
+            for start in range(0, len(order), chunk_size):
+                chunk = order[start : start + chunk_size]
+                views = [(self.view_pose(v), self.images(v.frame_index)) for v in chunk]
+                self.map.optimise(self.camera, views, list(range(len(chunk))) * self.config.mapper.final_iterations_per_view)
+            if self.views:
+                removed = self.map.prune(self.camera, self.view_pose(self.views[-1]))
+                logger.info("final refinement: %d steps per view over %d views, %d Gaussians pruned -> %d",
+                            self.config.mapper.final_iterations_per_view, len(self.views), removed, len(self.map))
+        if splats_path is not None:
+            with self.run_log.stage("export"):
+                save_ply(splats_path, self.map.world_gaussians())
+
+    def rendering_poses(self, trajectory: Trajectory) -> np.ndarray:
+        """(N, 4, 4) rendering pose of every frame of the frontend's ``trajectory`` (see the module doc).
+
+        ``trajectory`` must be the frontend's final per-frame trajectory, the same poses as the final keyframe poses.
+        """
+        poses = np.array(trajectory.world_from_camera, np.float64)
+        if not self.views:
+            return poses
+        view_frames = np.array([view.frame_index for view in self.views])
+        order = np.argsort(view_frames)
+        for index in range(len(poses)):
+            position = np.searchsorted(view_frames[order], index, side="right") - 1
+            view = self.views[order[max(position, 0)]]
+            keyframe_pose = self.keyframe_poses[view.keyframe_id]
+            poses[index] = self.view_pose(view) @ inverse(keyframe_pose) @ poses[index]
+        return poses
+
+    def evaluate(self, rendering_poses: np.ndarray, frame_indices: list[int]) -> RenderingScores:
+        """PSNR/SSIM/LPIPS of renders at full resolution from ``rendering_poses`` (N, 4, 4) against the input frames."""
+        camera = self.sequence.camera
+
+        def pairs():
+            for index in frame_indices:
+                rendered = self.map.render(camera, rendering_poses[index]).rgb.clamp(0.0, 1.0).numpy()
+                yield index, rendered, self.sequence[index].rgb.astype(np.float32) / 255.0
+
+        with self._threads():
+            return score_renders(pairs())
+
+
+def evaluation_frames(frame_count: int, every: int, mapping_frames: set[int]) -> list[int]:
+    """Novel views: every ``every``-th frame (0, every, 2 every, ...) that is not a mapping view."""
+    return [index for index in range(0, frame_count, every) if index not in mapping_frames]
+
+
+def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: RgbdSequence, config: Config,
+                    run_log: RunLog) -> dict:
+    """What the mapping stage adds to metrics.json: rendering scores (novel and mapping views), map and bridge figures.
+
+    Renders are at full resolution from the rendering poses (the bridge-refined views and the frames anchored on
+    them). With ground truth, the ATE of the mapping views' poses before (frontend) and after the bridge is added.
+    """
+    poses = mapping.rendering_poses(tracking.trajectory)
+    view_frames = sorted(view.frame_index for view in mapping.views)
+    novel = evaluation_frames(len(sequence), config.evaluation.novel_view_every, set(view_frames))
+    with run_log.stage("evaluation"):
+        novel_scores = mapping.evaluate(poses, novel)
+        view_scores = mapping.evaluate(poses, view_frames)
+    refinements = [view.refinement for view in mapping.views if view.refinement is not None and not view.refinement.skipped]
+    metrics = {
+        "rendering": {"novel_views": novel_scores.summary(), "mapping_views": view_scores.summary()},
+        "gaussians": len(mapping.map),
+        "mapping_views": len(mapping.views),
+        "mapping_resolution": [mapping.camera.width, mapping.camera.height],
+        "bridge": {
+            "enabled": config.bridge.enabled,
+            "view_selection": dict(mapping.selections),
+            "refined_views": len(refinements),
+            "mean_loss_initial": float(np.mean([r.loss_initial for r in refinements])) if refinements else None,
+            "mean_loss_final": float(np.mean([r.loss_final for r in refinements])) if refinements else None,
+        },
+    }
+    logger.info("rendering: novel views %.2f dB PSNR, %.3f SSIM (%d frames); mapping views %.2f dB, %.3f SSIM (%d); %d Gaussians",
+                novel_scores.summary()["psnr_db"] or float("nan"), novel_scores.summary()["ssim"] or float("nan"),
+                len(novel), view_scores.summary()["psnr_db"] or float("nan"), view_scores.summary()["ssim"] or float("nan"),
+                len(view_frames), len(mapping.map))
+    if sequence.ground_truth is not None and len(view_frames) >= 3:
+        timestamps = sequence.timestamps_s[view_frames]
+        frontend_poses = tracking.trajectory.world_from_camera[view_frames]
+        metrics["bridge"]["views_ate_rmse_m"] = {
+            "frontend": ate_rmse_m(Trajectory(timestamps, frontend_poses), sequence.ground_truth, align="se3"),
+            "rendering": ate_rmse_m(Trajectory(timestamps, poses[view_frames]), sequence.ground_truth, align="se3"),
+        }
+    return metrics

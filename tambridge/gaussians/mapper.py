@@ -1,0 +1,304 @@
+"""The online Gaussian map (paper Sec. 3.4): its parameters, their Adam state, and the keyframe anchors.
+
+Every Gaussian is *anchored* to the mapping view that created it: its mean is stored in that view's camera
+frame, and the world mean is ``world_from_anchor @ mean_anchor``. When loop closure or bundle adjustment moves
+a keyframe, :meth:`GaussianMap.set_anchor_pose` moves all the Gaussians it created with it, rigidly and
+exactly, so a corrected trajectory does not tear a map built on the old poses (SplaTAM and MonoGS have no loop
+closure and store world means).
+
+Adam runs on the raw parameters (anchor-frame means, colour, log radius, opacity logit) with per-Gaussian step
+counts, so Gaussians added late get the same bias-corrected first steps as the first ones did.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from tambridge.camera import Camera
+from tambridge.config import MapperConfig
+from tambridge.gaussians.losses import map_loss
+from tambridge.gaussians.model import (
+    NEAR_PLANE_M,
+    SIGMA_CUTOFF,
+    GaussianTensors,
+    RenderOutput,
+    camera_frame_means,
+    project_to_screen,
+)
+from tambridge.gaussians.rasterizer import render
+
+logger = logging.getLogger("tambridge.gaussians.mapper")
+
+SILHOUETTE_FLOOR = 1e-6
+"""Silhouettes below this count as nothing rendered."""
+FIELDS = ("means_anchor_m", "rgb", "log_radii_m", "opacity_logits")
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-15  # 3DGS's value: radii and opacities get tiny gradients that a larger eps would swamp
+
+
+@dataclasses.dataclass
+class ViewImages:
+    """A view's frame at the mapping resolution: rgb (H, W, 3) float32 in [0, 1], depth_m (H, W) float32 (0 = invalid)."""
+
+    rgb: torch.Tensor
+    depth_m: torch.Tensor
+
+
+def backproject(depth_m: torch.Tensor, camera: Camera, mask: torch.Tensor) -> torch.Tensor:
+    """(M, 3) camera-frame points of the pixels where ``mask`` (H, W) holds, from ``depth_m`` (H, W), in mask's row-major order."""
+    rows, columns = torch.nonzero(mask, as_tuple=True)
+    z = depth_m[rows, columns]
+    x = (columns.to(z.dtype) - camera.cx) / camera.fx * z
+    y = (rows.to(z.dtype) - camera.cy) / camera.fy * z
+    return torch.stack([x, y, z], dim=1)
+
+
+def surface_depth_m(depth_m: torch.Tensor, silhouette: torch.Tensor) -> torch.Tensor:
+    """(H, W) rendered depth normalised by the silhouette (the depth of the surface the Gaussians form), 0 where
+    nothing is rendered. ``depth_m`` is the unnormalised alpha-blended depth the rasteriser returns."""
+    covered = silhouette > SILHOUETTE_FLOOR
+    return torch.where(covered, depth_m / silhouette.clamp(min=SILHOUETTE_FLOOR), torch.zeros_like(depth_m))
+
+
+def densify_mask(observed_depth_m: torch.Tensor, rendered: RenderOutput, silhouette_threshold: float, depth_factor: float) -> torch.Tensor:
+    """(H, W) bool: pixels with valid depth that the map does not explain yet.
+
+    Either the border mask is below ``silhouette_threshold`` (uncovered or half-covered) or the rendered surface is
+    far behind the observed one (something new in front of the map: more than ``depth_factor`` times the median
+    depth residual over the covered pixels).
+    """
+    with torch.no_grad():
+        valid = observed_depth_m > 0
+        uncovered = rendered.silhouette < silhouette_threshold
+        surface = surface_depth_m(rendered.depth_m, rendered.silhouette)
+        covered = valid & ~uncovered
+        behind = torch.zeros_like(valid)
+        if bool(covered.any()):
+            residual = surface - observed_depth_m
+            median = residual[covered].abs().median()
+            behind = covered & (residual > depth_factor * median)
+        return valid & (uncovered | behind)
+
+
+class GaussianMap:
+    """Isotropic Gaussians anchored to mapping views, with their Adam state.
+
+    ``anchor ids`` are the mapper's names for mapping views (the pipeline uses keyframe ids). Tensors live on
+    ``device`` in float32; anchor poses in float64.
+    """
+
+    def __init__(self, config: MapperConfig, device: str | torch.device = "cpu") -> None:
+        self.config = config
+        self.device = torch.device(device)
+        self._params = {
+            "means_anchor_m": torch.zeros((0, 3), device=self.device),
+            "rgb": torch.zeros((0, 3), device=self.device),
+            "log_radii_m": torch.zeros(0, device=self.device),
+            "opacity_logits": torch.zeros(0, device=self.device),
+        }
+        self._exp_avg = {name: torch.zeros_like(value) for name, value in self._params.items()}
+        self._exp_avg_sq = {name: torch.zeros_like(value) for name, value in self._params.items()}
+        self._steps = torch.zeros(0, device=self.device)
+        self._anchor_rows = torch.zeros(0, dtype=torch.long, device=self.device)
+        self._anchor_ids: list[int] = []
+        self._world_from_anchor = torch.zeros((0, 4, 4), dtype=torch.float64, device=self.device)
+        self._learning_rates = {
+            "means_anchor_m": config.lr_means_m,
+            "rgb": config.lr_rgb,
+            "log_radii_m": config.lr_log_radii,
+            "opacity_logits": config.lr_opacity_logits,
+        }
+
+    def __len__(self) -> int:
+        return int(self._params["rgb"].shape[0])
+
+    # ---- anchors -------------------------------------------------------------------------------------------
+
+    def set_anchor_pose(self, anchor_id: int, world_from_anchor: np.ndarray) -> None:
+        """Register an anchor or move it (4x4 ``world_from_anchor``); its Gaussians move with it rigidly."""
+        pose = torch.as_tensor(np.asarray(world_from_anchor, np.float64), device=self.device)
+        assert pose.shape == (4, 4), pose.shape
+        if anchor_id in self._anchor_ids:
+            self._world_from_anchor[self._anchor_ids.index(anchor_id)] = pose
+        else:
+            self._anchor_ids.append(anchor_id)
+            self._world_from_anchor = torch.cat([self._world_from_anchor, pose[None]], dim=0)
+
+    def anchor_poses(self) -> dict[int, np.ndarray]:
+        """Anchor id -> 4x4 ``world_from_anchor``."""
+        return {anchor_id: self._world_from_anchor[row].cpu().numpy() for row, anchor_id in enumerate(self._anchor_ids)}
+
+    def anchor_counts(self) -> dict[int, int]:
+        """Anchor id -> number of Gaussians it holds."""
+        counts = torch.bincount(self._anchor_rows, minlength=len(self._anchor_ids)).tolist()
+        return dict(zip(self._anchor_ids, counts))
+
+    # ---- the Gaussians --------------------------------------------------------------------------------------
+
+    def gaussians(self, params: dict[str, torch.Tensor] | None = None, rows: torch.Tensor | None = None) -> GaussianTensors:
+        """World-frame :class:`GaussianTensors` of the map.
+
+        ``rows`` (M,) long picks a subset; ``params`` then holds that subset's raw parameters (the leaves being
+        optimised), else the map's own are used.
+        """
+        if params is None:
+            params = self._params if rows is None else {name: value[rows] for name, value in self._params.items()}
+        anchor_rows = self._anchor_rows if rows is None else self._anchor_rows[rows]
+        world_from_anchor = self._world_from_anchor.to(params["means_anchor_m"].dtype)[anchor_rows]  # (M, 4, 4)
+        means_world = torch.einsum("nij,nj->ni", world_from_anchor[:, :3, :3], params["means_anchor_m"]) + world_from_anchor[:, :3, 3]
+        return GaussianTensors(means_world, params["rgb"], params["log_radii_m"], params["opacity_logits"])
+
+    def visible_rows(self, camera: Camera, world_from_camera: np.ndarray) -> torch.Tensor:
+        """(M,) long indices of the Gaussians whose 3-sigma disc can touch the image of ``camera`` at this pose."""
+        with torch.no_grad():
+            gaussians = self.gaussians()
+            means_camera = camera_frame_means(gaussians, torch.as_tensor(np.asarray(world_from_camera, np.float64)))
+            screen = project_to_screen(gaussians, means_camera, camera)
+            reach = SIGMA_CUTOFF * screen.radii_px
+            u, v = screen.means_px[:, 0], screen.means_px[:, 1]
+            inside = (
+                (screen.depths_m > NEAR_PLANE_M)
+                & (u + reach >= 0) & (u - reach <= camera.width - 1)
+                & (v + reach >= 0) & (v - reach <= camera.height - 1)
+            )
+            return torch.nonzero(inside).squeeze(1)
+
+    def render(self, camera: Camera, world_from_camera: np.ndarray) -> RenderOutput:
+        """Render the map without gradients (evaluation, densification)."""
+        with torch.no_grad():
+            return render(self.gaussians(), camera, world_from_camera, backend=self.config.backend)
+
+    def add(self, anchor_id: int, means_anchor_m: torch.Tensor, rgb: torch.Tensor, radii_m: torch.Tensor) -> None:
+        """Append M Gaussians created by ``anchor_id``: means (M, 3) in its camera frame, rgb (M, 3), radii (M,) metres.
+
+        They start at opacity ``config.initial_opacity`` with fresh Adam state.
+        """
+        count = means_anchor_m.shape[0]
+        assert means_anchor_m.shape == (count, 3) and rgb.shape == (count, 3) and radii_m.shape == (count,)
+        if anchor_id not in self._anchor_ids:
+            raise KeyError(f"anchor {anchor_id} has no pose; call set_anchor_pose first")
+        initial_logit = float(np.log(self.config.initial_opacity / (1.0 - self.config.initial_opacity)))
+        new = {
+            "means_anchor_m": means_anchor_m.to(self.device, torch.float32),
+            "rgb": rgb.to(self.device, torch.float32),
+            "log_radii_m": torch.log(radii_m).to(self.device, torch.float32),
+            "opacity_logits": torch.full((count,), initial_logit, device=self.device),
+        }
+        for name in FIELDS:
+            self._params[name] = torch.cat([self._params[name], new[name]])
+            self._exp_avg[name] = torch.cat([self._exp_avg[name], torch.zeros_like(new[name])])
+            self._exp_avg_sq[name] = torch.cat([self._exp_avg_sq[name], torch.zeros_like(new[name])])
+        self._steps = torch.cat([self._steps, torch.zeros(count, device=self.device)])
+        row = self._anchor_ids.index(anchor_id)
+        self._anchor_rows = torch.cat([self._anchor_rows, torch.full((count,), row, dtype=torch.long, device=self.device)])
+
+    def keep(self, kept: torch.Tensor) -> None:
+        """Keep only the Gaussians where ``kept`` (N,) bool holds, with their Adam state."""
+        for state in (self._params, self._exp_avg, self._exp_avg_sq):
+            for name in FIELDS:
+                state[name] = state[name][kept]
+        self._steps = self._steps[kept]
+        self._anchor_rows = self._anchor_rows[kept]
+
+    def densify(self, anchor_id: int, camera: Camera, images: ViewImages, rendered: RenderOutput | None) -> int:
+        """Add a Gaussian at every pixel of the view that the map does not explain (all valid pixels when empty).
+
+        ``anchor_id`` is the view (its pose set already); ``rendered`` the map rendered at that pose (None: empty map).
+        A new Gaussian sits on the back-projected pixel with a radius of one pixel, ``r = d / f`` (eq. 8), and the
+        pixel's colour. Returns how many were added.
+        """
+        if rendered is None:
+            mask = images.depth_m > 0
+        else:
+            mask = densify_mask(images.depth_m, rendered, self.config.densify_silhouette, self.config.densify_depth_factor)
+        points = backproject(images.depth_m, camera, mask)
+        focal = 0.5 * (camera.fx + camera.fy)
+        self.add(anchor_id, points, images.rgb[mask], points[:, 2] / focal)
+        return int(points.shape[0])
+
+    def prune(self, camera: Camera, world_from_camera: np.ndarray) -> int:
+        """Remove Gaussians of opacity below ``tau`` and those bigger than ``prune_radius_px`` pixels in this view.
+
+        Returns how many were removed.
+        """
+        with torch.no_grad():
+            opacity = torch.sigmoid(self._params["opacity_logits"])
+            means_camera = camera_frame_means(self.gaussians(), torch.as_tensor(np.asarray(world_from_camera, np.float64)))
+            depth = means_camera[:, 2].clamp(min=1e-3)
+            radius_px = 0.5 * (camera.fx + camera.fy) * torch.exp(self._params["log_radii_m"]) / depth
+            oversized = (means_camera[:, 2] > 0) & (radius_px > self.config.prune_radius_px)
+            kept = (opacity >= self.config.tau) & ~oversized
+        removed = len(self) - int(kept.sum())
+        if removed:
+            self.keep(kept)
+        return removed
+
+    # ---- optimisation ---------------------------------------------------------------------------------------
+
+    def optimise(self, camera: Camera, views: Sequence[tuple[np.ndarray, ViewImages]], schedule: Sequence[int]) -> list[float]:
+        """Adam steps of the map loss with the poses fixed: step k renders ``views[schedule[k]]``; returns the losses.
+
+        ``views`` are ``(world_from_camera (4, 4), images)`` pairs at ``camera``'s resolution. Only the Gaussians
+        that can touch one of the views take part: they are gathered once into contiguous tensors with their Adam
+        state, stepped, and scattered back, so the cost follows the views, not the size of the map. A Gaussian
+        that gets no gradient in a step (outside that step's view) does not move and its Adam state is unchanged.
+        """
+        if not schedule or len(self) == 0:
+            return []
+        rows = torch.unique(torch.cat([self.visible_rows(camera, pose) for pose, _ in views]))
+        params = {name: value[rows].clone() for name, value in self._params.items()}
+        exp_avg = {name: value[rows].clone() for name, value in self._exp_avg.items()}
+        exp_avg_sq = {name: value[rows].clone() for name, value in self._exp_avg_sq.items()}
+        steps = self._steps[rows].clone()
+        world_from_anchor = self._world_from_anchor.to(torch.float32)[self._anchor_rows[rows]]
+        rotations, translations = world_from_anchor[:, :3, :3], world_from_anchor[:, :3, 3]
+        losses = []
+        for view_index in schedule:
+            world_from_camera, images = views[view_index]
+            leaves = {name: value.requires_grad_(True) for name, value in params.items()}
+            means_world = torch.einsum("nij,nj->ni", rotations, leaves["means_anchor_m"]) + translations
+            gaussians = GaussianTensors(means_world, leaves["rgb"], leaves["log_radii_m"], leaves["opacity_logits"])
+            rendered = render(gaussians, camera, world_from_camera, backend=self.config.backend)
+            loss = map_loss(rendered.rgb, rendered.depth_m, images.rgb, images.depth_m,
+                            self.config.zeta, self.config.w_depth, self.config.w_colour)
+            loss.backward()
+            params = {name: leaf.detach() for name, leaf in leaves.items()}
+            steps = self._adam_step(params, {name: leaf.grad for name, leaf in leaves.items()}, exp_avg, exp_avg_sq, steps)
+            losses.append(float(loss.detach()))
+        for name in FIELDS:
+            self._params[name][rows] = params[name]
+            self._exp_avg[name][rows] = exp_avg[name]
+            self._exp_avg_sq[name][rows] = exp_avg_sq[name]
+        self._steps[rows] = steps
+        return losses
+
+    def _adam_step(self, params: dict, grads: dict, exp_avg: dict, exp_avg_sq: dict, steps: torch.Tensor) -> torch.Tensor:
+        """One Adam step (Kingma & Ba 2015), in place, on the Gaussians with a gradient; returns their step counts (M,)."""
+        beta1, beta2 = ADAM_BETAS
+        touched = torch.zeros(len(steps), dtype=torch.bool, device=steps.device)
+        for grad in grads.values():
+            touched |= grad.reshape(len(steps), -1).abs().sum(dim=1) > 0
+        steps = steps + touched.to(steps.dtype)
+        correction1 = 1.0 - beta1 ** steps.clamp(min=1)
+        correction2 = 1.0 - beta2 ** steps.clamp(min=1)
+        with torch.no_grad():
+            for name, grad in grads.items():
+                shape = (-1,) + (1,) * (grad.dim() - 1)
+                mask = touched.view(shape)
+                exp_avg[name] = torch.where(mask, beta1 * exp_avg[name] + (1 - beta1) * grad, exp_avg[name])
+                exp_avg_sq[name] = torch.where(mask, beta2 * exp_avg_sq[name] + (1 - beta2) * grad * grad, exp_avg_sq[name])
+                update = (exp_avg[name] / correction1.view(shape)) / (torch.sqrt(exp_avg_sq[name] / correction2.view(shape)) + ADAM_EPS)
+                params[name] -= torch.where(mask, self._learning_rates[name] * update, torch.zeros_like(update))
+            # Colours are optimised directly (as SplaTAM does) and kept in the displayable range.
+            params["rgb"].clamp_(0.0, 1.0)
+        return steps
+
+    def world_gaussians(self) -> GaussianTensors:
+        """Detached world-frame Gaussians (for export)."""
+        with torch.no_grad():
+            return self.gaussians()
