@@ -171,6 +171,8 @@ def measure(data: str, count: int, resolution: tuple[int, int], backend: str, mo
     }
     if stage_s:
         result["stage_s_mean"] = {name: seconds / repeats for name, seconds in stage_s.items()}
+        # The rest: projection and its backward in torch, packing, conversions, autograd.
+        result["stage_s_mean"]["torch_and_glue"] = float(np.mean(walls)) - sum(stage_s.values()) / repeats
     return result
 
 
