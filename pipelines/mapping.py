@@ -19,10 +19,8 @@ import contextlib
 import dataclasses
 import logging
 from pathlib import Path
-from typing import Iterator
 
 import cv2
-import numba
 import numpy as np
 import torch
 
@@ -30,12 +28,11 @@ from tambridge.bridge.refinement import RefinementResult, refine_pose
 from tambridge.bridge.view_selection import Selection, select_view
 from tambridge.config import Config
 from tambridge.evaluation.rendering import RenderingScores, score_renders
-from tambridge.frontend.types import KeyframeEvent
-from tambridge.gaussians.mapper import GaussianMap, ViewImages, backproject
-from tambridge.geometry import inverse, transform_points
 from tambridge.evaluation.trajectory import ate_rmse_m
-from tambridge.frontend.types import FrontendResult
+from tambridge.frontend.types import FrontendResult, KeyframeEvent
+from tambridge.gaussians.mapper import TORCH_THREADS, GaussianMap, ViewImages, backproject, compute_threads
 from tambridge.gaussians.ply import save_ply
+from tambridge.geometry import inverse, transform_points
 from tambridge.io.tum import Frame, RgbdSequence
 from tambridge.runlog import RunLog
 from tambridge.trajectory import Trajectory
@@ -44,26 +41,6 @@ logger = logging.getLogger("tambridge.pipelines.mapping")
 
 OVERLAP_SAMPLES = 256
 """Pixels of the new view projected into earlier views to measure their overlap."""
-TORCH_THREADS = 1
-"""torch intra-op threads while mapping. The mapper's torch ops are small (one view's Gaussians) and torch's
-OpenMP pool fights the rasteriser's numba OpenMP threads for the cores: on 2 cores, one Adam step at 160x120
-took 1.38 s with 2 torch threads and 0.037 s with 1."""
-
-
-@contextlib.contextmanager
-def compute_threads(torch_count: int, numba_count: int) -> Iterator[None]:
-    """Run a block with ``torch_count`` torch intra-op threads and ``numba_count`` numba threads (0: numba's
-    default, all cores), then restore the previous counts."""
-    previous = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(torch_count)
-    numba.set_num_threads(numba_count if numba_count > 0 else numba.config.NUMBA_NUM_THREADS)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous[0])
-        numba.set_num_threads(previous[1])
-
-
 @dataclasses.dataclass
 class MappingView:
     """A keyframe taken as a mapping view. ``keyframe_from_view`` (4x4) is the bridge's pose correction."""
@@ -154,7 +131,11 @@ class MappingStage:
         if bridge.enabled and len(self.map):
             with self.run_log.stage("bridge"):
                 keypoints = (np.asarray(event.keypoints_px, np.float64).reshape(-1, 2) + 0.5) * self.config.mapper.resolution_scale - 0.5
-                refinement = refine_pose(self.map.gaussians(), self.camera, self.keyframe_poses[event.keyframe_id],
+                # Only the Gaussians in view at the frontend pose: the refinement moves the pose by centimetres.
+                in_view = self.map.visible_rows(self.camera, self.keyframe_poses[event.keyframe_id])
+                with torch.no_grad():
+                    gaussians = self.map.gaussians(rows=in_view)
+                refinement = refine_pose(gaussians, self.camera, self.keyframe_poses[event.keyframe_id],
                                          images.rgb, images.depth_m, event.points_world_m, keypoints, bridge,
                                          backend=self.config.mapper.backend)
                 keyframe_from_view = inverse(self.keyframe_poses[event.keyframe_id]) @ refinement.world_from_camera

@@ -10,9 +10,16 @@ from tambridge.bridge.refinement import pixel_gates, refine_pose, reprojection_e
 from tambridge.bridge.view_selection import Selection, covisibility_selection, select_view
 from tambridge.config import BridgeConfig, MapperConfig
 from tambridge.frontend.types import KeyframeEvent
-from tambridge.gaussians.mapper import GaussianMap, ViewImages
+from tambridge.gaussians.mapper import TORCH_THREADS, GaussianMap, ViewImages, compute_threads
 from tambridge.geometry import exp_se3, inverse, log_se3, transform_points
 from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render
+
+
+@pytest.fixture(autouse=True)
+def one_thread_each():
+    """As the pipeline maps (see TORCH_THREADS): torch's and numba's OpenMP pools otherwise fight for 2 cores."""
+    with compute_threads(TORCH_THREADS, 1):
+        yield
 
 
 @pytest.mark.parametrize(
@@ -87,11 +94,12 @@ def synthetic_map():
         colour, depth = render(scene, camera, poses[index])
         views[index] = ViewImages(torch.from_numpy(colour), torch.from_numpy(depth))
     gaussian_map = GaussianMap(MapperConfig())
-    for index in (0, 2):
-        gaussian_map.set_anchor_pose(index, poses[index])
-        rendered = gaussian_map.render(camera, poses[index]) if len(gaussian_map) else None
-        gaussian_map.densify(index, camera, views[index], rendered)
-    gaussian_map.optimise(camera, [(poses[0], views[0]), (poses[2], views[2])], [0, 1] * 10)
+    with compute_threads(TORCH_THREADS, 1):  # module scope: set up before the autouse fixture
+        for index in (0, 2):
+            gaussian_map.set_anchor_pose(index, poses[index])
+            rendered = gaussian_map.render(camera, poses[index]) if len(gaussian_map) else None
+            gaussian_map.densify(index, camera, views[index], rendered)
+        gaussian_map.optimise(camera, [(poses[0], views[0]), (poses[2], views[2])], [0, 1] * 10)
     return gaussian_map, camera, poses, views
 
 

@@ -1,18 +1,30 @@
 """Online Gaussian map: anchoring, Adam, densification, pruning, and mapping a synthetic sequence at known poses."""
 
+import json
+
 import numpy as np
+import pytest
 import torch
 
 from pipelines.mapping import MappingStage, MappingView, evaluation_frames
+from pipelines.reconstruct import reconstruct
 from tambridge.bridge.view_selection import Selection
 from tambridge.config import Config, MapperConfig
 from tambridge.frontend.types import KeyframeEvent
-from tambridge.gaussians.mapper import ADAM_EPS, GaussianMap, ViewImages, densify_mask
+from tambridge.gaussians.mapper import ADAM_EPS, TORCH_THREADS, GaussianMap, ViewImages, compute_threads, densify_mask
 from tambridge.gaussians.model import RenderOutput
+from tambridge.gaussians.ply import load_ply
 from tambridge.geometry import exp_se3, inverse, transform_points
 from tambridge.io.synthetic import default_camera
 from tambridge.io.tum import open_sequence
 from tambridge.runlog import RunLog
+
+
+@pytest.fixture(autouse=True)
+def one_thread_each():
+    """As the pipeline maps (see TORCH_THREADS): torch's and numba's OpenMP pools otherwise fight for 2 cores."""
+    with compute_threads(TORCH_THREADS, 1):
+        yield
 
 
 def small_map(anchor_poses, counts, seed=0):
@@ -187,3 +199,21 @@ def test_rendering_poses_carry_the_bridge_correction_to_the_frames_after_a_view(
     for index in (1, 2):
         np.testing.assert_allclose(rendering[index], poses[0] @ keyframe_from_view @ inverse(poses[0]) @ poses[index], atol=1e-12)
     np.testing.assert_allclose(rendering[3:], poses[3:], atol=1e-12)
+
+
+def test_reconstruct_writes_splats_and_rendering_metrics(synthetic_sequence_dir, tmp_path):
+    config = Config()
+    config.input.max_frames = 12
+    config.frontend.kind = "open3d_f2f"
+    config.mesh.enabled = False
+    result = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False)
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    splats = load_ply(tmp_path / "out" / "splats.ply")
+    assert len(splats) == metrics["gaussians"] > 1000
+    rendering = metrics["rendering"]
+    assert rendering["novel_views"]["frames"] + rendering["mapping_views"]["frames"] >= 3
+    for scores in rendering.values():
+        assert 10.0 < scores["psnr_db"] < 60.0 and 0.0 < scores["ssim"] <= 1.0 and scores["lpips"] is None
+    assert metrics["mapping_views"] == metrics["bridge"]["view_selection"]["FIRST"] + metrics["bridge"]["view_selection"]["NO_SPARSE_MAP"]
+    assert {"tracking", "mapping", "evaluation"} <= set(metrics["seconds_per_stage"])
+    assert metrics["fps_end_to_end"] > 0 and result.metrics == metrics

@@ -1,0 +1,147 @@
+"""Fusion Bridge on vs off, default vs fast preset: rendering quality and speed of ``tambridge reconstruct``.
+
+    python benchmarks/reconstruct.py                         # 7-Scenes (first 150 frames) + a synthetic loop
+    python benchmarks/reconstruct.py --max-frames 0          # all 700 7-Scenes frames (about an hour on 2 cores)
+
+Every case is one ``reconstruct`` run in its own process (peak memory = that process's ru_maxrss, read with
+wait4), written under benchmarks/results/runs/. Rendering scores are those of metrics.json: renders at full
+resolution from the rendering poses against the input frames, on every 5th frame that is not a mapping view
+("novel") and on the mapping views. ``fps`` is metrics.json's end-to-end rate (read, tracking, bridge, mapping,
+final pass, export; the rendering evaluation is not part of it); ``wall fps`` counts the whole process.
+The synthetic sequence is 160x120, so it is mapped at full resolution (``mapper.resolution_scale=1``).
+Prints a table and writes benchmarks/results/reconstruct.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence  # noqa: E402
+
+PRESETS = ("default", "fast")
+SYNTHETIC = SynthOptions(frame_count=120, width=160, height=120, seed=0)
+
+
+def run_case(sequence: Path, preset: str, bridge: bool, out: Path, max_frames: int | None, extra: list[str]) -> dict:
+    """One ``reconstruct`` run in a child process; returns its row."""
+    command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(sequence), "-o", str(out), "--quiet",
+               "--config", str(ROOT / "configs" / f"{preset}.yaml"), "--set", f"bridge.enabled={str(bridge).lower()}",
+               "--set", "mesh.enabled=false", *extra]
+    if max_frames:
+        command += ["--max-frames", str(max_frames)]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    with open(out.parent / f"{out.name}.log", "w") as log:
+        child = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(child.pid, 0)
+    seconds = time.perf_counter() - started
+    row = {"sequence": sequence.name, "preset": preset, "bridge": bridge, "exit_status": os.waitstatus_to_exitcode(status),
+           "wall_seconds": seconds, "peak_memory_mb": usage.ru_maxrss / 1024.0, "extra": extra}
+    metrics_path = out / "metrics.json"
+    if not metrics_path.is_file():
+        return row
+    metrics = json.loads(metrics_path.read_text())
+    rendering = metrics.get("rendering") or {}
+    novel, views = rendering.get("novel_views") or {}, rendering.get("mapping_views") or {}
+    bridge_metrics = metrics.get("bridge") or {}
+    views_ate = bridge_metrics.get("views_ate_rmse_m") or {}
+    row.update(
+        frames=metrics["frames"],
+        novel_psnr_db=novel.get("psnr_db"), novel_ssim=novel.get("ssim"), novel_lpips=novel.get("lpips"),
+        novel_frames=novel.get("frames"),
+        views_psnr_db=views.get("psnr_db"), views_ssim=views.get("ssim"), mapping_views=metrics.get("mapping_views"),
+        gaussians=metrics.get("gaussians"), fps=metrics.get("fps_end_to_end"),
+        wall_fps=metrics["frames"] / seconds, seconds_per_stage=metrics.get("seconds_per_stage"),
+        ate_cm=(metrics.get("trajectory") or {}).get("ate_rmse_m", float("nan")) * 100,
+        views_ate_frontend_cm=views_ate.get("frontend", float("nan")) * 100,
+        views_ate_rendering_cm=views_ate.get("rendering", float("nan")) * 100,
+    )
+    return row
+
+
+def format_table(rows: list[dict]) -> str:
+    """A Markdown table of the rows."""
+    columns = [("sequence", "sequence", "{}"), ("preset", "preset", "{}"), ("bridge", "bridge", "{}"),
+               ("novel PSNR", "novel_psnr_db", "{:.2f}"), ("novel SSIM", "novel_ssim", "{:.3f}"),
+               ("LPIPS", "novel_lpips", "{:.3f}"), ("views PSNR", "views_psnr_db", "{:.2f}"),
+               ("views SSIM", "views_ssim", "{:.3f}"), ("views", "mapping_views", "{}"), ("Gaussians", "gaussians", "{}"),
+               ("views ATE cm (frontend -> rendering)", "views_ate", "{}"), ("fps", "fps", "{:.2f}"),
+               ("wall fps", "wall_fps", "{:.2f}"), ("peak MB", "peak_memory_mb", "{:.0f}")]
+    lines = ["| " + " | ".join(title for title, _, _ in columns) + " |", "|" + "---|" * len(columns)]
+    for row in rows:
+        cells = []
+        for _, key, form in columns:
+            if key == "views_ate":
+                value = f"{row.get('views_ate_frontend_cm', float('nan')):.2f} -> {row.get('views_ate_rendering_cm', float('nan')):.2f}"
+            else:
+                value = row.get(key)
+            if row.get("exit_status", 0) != 0 and key == "novel_psnr_db":
+                cells.append(f"failed (exit {row['exit_status']})")
+            elif value is None:
+                cells.append("-")
+            else:
+                cells.append(form.format(value) if not isinstance(value, str) else value)
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def bridge_gains(rows: list[dict]) -> list[dict]:
+    """Novel-view PSNR of bridge on minus bridge off, per sequence and preset."""
+    gains = []
+    for sequence in dict.fromkeys(row["sequence"] for row in rows):
+        for preset in PRESETS:
+            on = [r for r in rows if r["sequence"] == sequence and r["preset"] == preset and r["bridge"]]
+            off = [r for r in rows if r["sequence"] == sequence and r["preset"] == preset and not r["bridge"]]
+            if on and off and on[0].get("novel_psnr_db") is not None and off[0].get("novel_psnr_db") is not None:
+                gains.append({"sequence": sequence, "preset": preset,
+                              "novel_psnr_gain_db": on[0]["novel_psnr_db"] - off[0]["novel_psnr_db"]})
+    return gains
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    parser.add_argument("--max-frames", type=int, default=150, help="7-Scenes frames to use (0: all 700)")
+    parser.add_argument("--presets", nargs="*", default=list(PRESETS))
+    parser.add_argument("--skip-synthetic", action="store_true")
+    arguments = parser.parse_args()
+    runs = ROOT / "benchmarks" / "results" / "runs"
+    cases = [(arguments.data / "7scenes_redkitchen_0-699", arguments.max_frames or None, [])]
+    if not arguments.skip_synthetic:
+        synthetic = runs / "synthetic_loop_120"
+        if not (synthetic / "groundtruth.txt").is_file():
+            write_synthetic_sequence(synthetic, SYNTHETIC)
+        cases.append((synthetic, None, ["--set", "mapper.resolution_scale=1.0"]))
+    rows = []
+    for sequence, max_frames, extra in cases:
+        for preset in arguments.presets:
+            for bridge in (True, False):
+                out = runs / f"{sequence.name}__{preset}__bridge_{'on' if bridge else 'off'}"
+                print(f"running {preset}, bridge {'on' if bridge else 'off'} on {sequence.name} ...", flush=True)
+                rows.append(run_case(sequence, preset, bridge, out, max_frames, extra))
+    table = format_table(rows)
+    gains = bridge_gains(rows)
+    print(table)
+    for gain in gains:
+        print(f"bridge gain, {gain['sequence']} {gain['preset']}: {gain['novel_psnr_gain_db']:+.2f} dB novel-view PSNR")
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine,
+              "command": " ".join(["python", "benchmarks/reconstruct.py", *sys.argv[1:]]),
+              "max_frames_7scenes": arguments.max_frames or None, "rows": rows, "bridge_gains": gains}
+    atomic_write_text(ROOT / "benchmarks" / "results" / "reconstruct.json", json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
