@@ -74,7 +74,6 @@ class MappingStage:
         self.map = GaussianMap(config.mapper)
         self.views: list[MappingView] = []
         self.keyframe_poses: dict[int, np.ndarray] = {}
-        self.keyframe_frame_indices: dict[int, int] = {}
         self.selections: collections.Counter = collections.Counter()
         self._cache: collections.OrderedDict[int, ViewImages] = collections.OrderedDict()
         self._rng = np.random.default_rng(config.seed)
@@ -118,7 +117,6 @@ class MappingStage:
 
     def _on_keyframe(self, event: KeyframeEvent, frame: Frame, keyframe_poses: dict[int, np.ndarray]) -> None:
         bridge = self.config.bridge
-        self.keyframe_frame_indices[event.keyframe_id] = event.frame_index
         selection = select_view(event, not self.keyframe_poses, bridge.enabled, bridge.alpha, bridge.beta)
         self.selections[selection.name] += 1
         self.keyframe_poses[event.keyframe_id] = np.asarray(event.world_from_camera, np.float64)
