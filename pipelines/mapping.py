@@ -154,9 +154,10 @@ class MappingStage:
         schedule = [0 if k % 2 == 0 or not window else 1 + (k // 2) % len(window) for k in range(self.config.mapper.iterations)]
         losses = self.map.optimise(self.camera, views, schedule)
         removed = self.map.prune(self.camera, world_from_camera)
-        logger.info("view %d (frame %d, %s): +%d -%d Gaussians -> %d, window %s, loss %.4f -> %.4f", len(self.views) - 1,
+        own = [loss for loss, index in zip(losses, schedule) if index == 0] or [float("nan")]
+        logger.info("view %d (frame %d, %s): +%d -%d Gaussians -> %d, window %s, its loss %.4f -> %.4f", len(self.views) - 1,
                     view.frame_index, view.selection.value, added, removed, len(self.map),
-                    [v.frame_index for v in window], losses[0] if losses else float("nan"), losses[-1] if losses else float("nan"))
+                    [v.frame_index for v in window], own[0], own[-1])
 
     def overlapping_views(self, world_from_camera: np.ndarray, images: ViewImages) -> list[MappingView]:
         """The ``window_size - 1`` earlier views that see the most of this view's points (at least one point)."""
