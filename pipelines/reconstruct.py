@@ -12,17 +12,21 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 from tqdm import tqdm
 
 from tambridge.camera import Camera
 from tambridge.config import Config, ConfigError, to_yaml
-from tambridge.evaluation.trajectory import evaluate_trajectory
+from tambridge.evaluation.report import RenderPair, write_report
+from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory
 from tambridge.export.atomic import atomic_write_text
+from tambridge.export.mesh import fuse_tsdf_mesh, gaussian_views, sensor_views, write_mesh
 from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
 from tambridge.frontend.types import Frontend, FrontendResult, TrackResult
 from tambridge.io.tum import Frame, RgbdSequence, open_sequence
 from tambridge.runlog import RunLog, peak_memory_mb
-from tambridge.trajectory import Trajectory, write_tum_trajectory
+from tambridge.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
+from tambridge.viewer import RerunViewer
 
 from pipelines.mapping import MappingStage, mapping_metrics
 
@@ -53,30 +57,39 @@ def track_sequence(
     run_log: RunLog,
     progress: bool,
     on_keyframe: Callable[[TrackResult, Frame], None] | None = None,
+    on_frame: Callable[[TrackResult, Frame], None] | None = None,
 ) -> FrontendResult:
     """Feed every frame to the frontend in order; returns its final result (after loop closure and global BA).
 
     ``on_keyframe(result, frame)`` is called after each frame that made a keyframe (the online mapping); its time
-    is not counted as tracking.
+    is not counted as tracking. ``on_frame(result, frame)`` is called after every frame (the live view).
     """
     for frame in tqdm(sequence, total=len(sequence), desc="tracking", unit="frame", disable=not progress):
         with run_log.stage("tracking"):
             result = frontend.track(frame)
         if on_keyframe is not None and result.keyframe is not None:
             on_keyframe(result, frame)
+        if on_frame is not None:
+            on_frame(result, frame)
     with run_log.stage("tracking"):
         return frontend.finish()
 
 
-def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: bool = True) -> ReconstructResult:
-    """Reconstruct a TUM-layout sequence into ``output_dir`` (see DESIGN.md for the folder's contents)."""
+def reconstruct(
+    sequence_dir: Path, output_dir: Path, config: Config, progress: bool = True, viewer: str | None = None
+) -> ReconstructResult:
+    """Reconstruct a TUM-layout sequence into ``output_dir`` (see DESIGN.md for the folder's contents).
+
+    ``viewer``: ``"rerun"`` streams the run to a spawned rerun viewer, ``"rerun:FILE.rrd"`` saves a recording.
+    """
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
-    for stale in ("metrics.json", "trajectory.txt", "keyframes.txt", "splats.ply"):
+    for stale in ("metrics.json", "trajectory.txt", "keyframes.txt", "splats.ply", "mesh.ply", "report/index.html"):
         # A re-run into the same folder must not leave an earlier run's results looking like this run's.
         (output_dir / stale).unlink(missing_ok=True)
     run_log = RunLog(output_dir / "run.log")
     started = time.perf_counter()
+    live_view = None
     try:
         atomic_write_text(output_dir / "config.yaml", to_yaml(config))
         logger.info("reconstructing %s into %s", sequence_dir, output_dir)
@@ -93,12 +106,29 @@ def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: 
         on_keyframe = None
         if mapping is not None:
             on_keyframe = lambda result, frame: mapping.on_keyframe(result.keyframe, frame, frontend.keyframe_poses())  # noqa: E731
-        tracking = track_sequence(sequence, frontend, run_log, progress, on_keyframe)
+        live_view = RerunViewer(viewer, sequence.camera) if viewer else None
+        gaussian_counts: list[tuple[int, int]] = []
+
+        def on_frame(result: TrackResult, frame: Frame) -> None:
+            if mapping is not None:
+                gaussian_counts.append((frame.index, len(mapping.map)))
+            if live_view is not None:
+                with run_log.stage("viewer"):
+                    live_view.log_frame(frame.index, frame.timestamp_s, result.world_from_camera, frame.rgb,
+                                        frame.depth_m, result.is_keyframe)
+
+        tracking = track_sequence(sequence, frontend, run_log, progress, on_keyframe, on_frame)
         trajectory, keyframes = tracking.trajectory, tracking.keyframe_trajectory
         write_tum_trajectory(output_dir / "trajectory.txt", trajectory)
         write_tum_trajectory(output_dir / "keyframes.txt", keyframes)
         if mapping is not None:
             mapping.finish(tracking.keyframe_poses, output_dir / "splats.ply")
+        if config.mesh.enabled:
+            with run_log.stage("mesh"):
+                write_run_mesh(output_dir / "mesh.ply", sequence, trajectory, config, mapping)
+        if live_view is not None:
+            with run_log.stage("viewer"):
+                log_final_state(live_view, sequence, tracking, mapping)
         # End to end = what a user waits for to get trajectory and map; the rendering evaluation below is not part of it.
         total_s = time.perf_counter() - started
         metrics = {
@@ -123,10 +153,12 @@ def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: 
             # The evaluation ran after the figures above were taken: refresh what it adds to.
             metrics.update(seconds_per_stage=dict(run_log.stage_seconds), peak_memory_mb=peak_memory_mb(),
                            warnings=run_log.warnings)
+        errors = None
         if sequence.ground_truth is not None:
             errors = evaluate_trajectory(trajectory, sequence.ground_truth, align="se3")
             metrics["trajectory"] = errors.summary()
             logger.info("ATE RMSE %.2f cm over %d poses (SE(3)-aligned)", errors.ate_rmse_m * 100, errors.pose_count)
+        write_run_report(output_dir, metrics, sequence, errors, mapping, trajectory, gaussian_counts)
         atomic_write_text(output_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         logger.info("finished in %.1f s", total_s)
         return ReconstructResult(trajectory, keyframes, metrics, output_dir)
@@ -134,4 +166,70 @@ def reconstruct(sequence_dir: Path, output_dir: Path, config: Config, progress: 
         run_log.record_stop(error)
         raise
     finally:
+        if live_view is not None:
+            live_view.close()
         run_log.close()
+
+
+REPORT_RENDERS = 4
+"""Frames rendered from the map for the report's grid (at the mapping resolution: cheap)."""
+
+
+def write_run_mesh(path: Path, sequence: RgbdSequence, trajectory: Trajectory, config: Config,
+                   mapping: MappingStage | None) -> None:
+    """TSDF mesh of every ``mesh.frame_stride``-th frame at its final pose; ``mesh.source=gaussians`` fuses the
+    map's rendered depth (at the mapping resolution, from the rendering poses) instead of the sensor's."""
+    source = config.mesh.source
+    if source not in ("tsdf", "gaussians"):
+        raise ConfigError(f"mesh.source={source!r}: expected tsdf (sensor depth) or gaussians (rendered depth)")
+    stride = config.mesh.frame_stride
+    if source == "gaussians" and mapping is not None and len(mapping.map):
+        poses = mapping.rendering_poses(trajectory)[::stride]
+        views, camera = gaussian_views(mapping.map.world_gaussians(), mapping.camera, poses), mapping.camera
+    else:
+        if source == "gaussians":
+            logger.warning("mesh.source=gaussians but no Gaussian map was built (mapper.enabled=false?): fusing sensor depth")
+        views, camera = sensor_views(sequence, trajectory.world_from_camera, stride), sequence.camera
+    write_mesh(path, fuse_tsdf_mesh(views, camera, config.mesh))
+
+
+def log_final_state(live_view: RerunViewer, sequence: RgbdSequence, tracking: FrontendResult,
+                    mapping: MappingStage | None) -> None:
+    """After the frontend: corrected keyframes, the sparse map, the Gaussian centres and a render of the last view."""
+    last = len(sequence) - 1
+    stamp = float(sequence.timestamps_s[last])
+    live_view.log_keyframes(last, stamp, tracking.keyframe_trajectory.world_from_camera)
+    if len(tracking.map_points_world_m):
+        live_view.log_sparse_map(last, stamp, tracking.map_points_world_m, tracking.map_point_colours)
+    if mapping is not None and len(mapping.map):
+        gaussians = mapping.map.world_gaussians()
+        live_view.log_gaussians(last, stamp, gaussians.means_m.detach().numpy(), gaussians.rgb.detach().numpy(),
+                                gaussians.log_radii_m.detach().exp().numpy())
+        pose = mapping.rendering_poses(tracking.trajectory)[last]
+        live_view.log_render(last, stamp, _uint8(mapping.map.render(mapping.camera, pose).rgb.detach().numpy()))
+
+
+def write_run_report(output_dir: Path, metrics: dict, sequence: RgbdSequence, errors: TrajectoryErrors | None,
+                     mapping: MappingStage | None, trajectory: Trajectory, gaussian_counts: list[tuple[int, int]]) -> None:
+    """``output_dir/report/index.html``; adds COLMAP when ``output_dir/colmap/trajectory.txt`` exists."""
+    trajectory_errors = {}
+    if errors is not None:
+        trajectory_errors["tambridge (SE(3))"] = errors
+        colmap_path = output_dir / "colmap" / "trajectory.txt"
+        if colmap_path.is_file():
+            trajectory_errors["COLMAP (Sim(3))"] = evaluate_trajectory(read_tum_trajectory(colmap_path),
+                                                                       sequence.ground_truth, align="sim3")
+    pairs = []
+    if mapping is not None and len(mapping.map):
+        poses = mapping.rendering_poses(trajectory)
+        for index in np.unique(np.linspace(0, len(sequence) - 1, REPORT_RENDERS).astype(int)):
+            rendered = mapping.map.render(mapping.camera, poses[index]).rgb.detach().numpy()
+            pairs.append(RenderPair(f"frame {index}", _uint8(mapping.images(int(index)).rgb.numpy()), _uint8(rendered)))
+    counts = np.array(gaussian_counts).reshape(-1, 2)
+    write_report(output_dir / "report", metrics, trajectory_errors, pairs,
+                 (counts[:, 0], counts[:, 1]) if len(counts) else None, title=f"tambridge: {metrics['sequence']}")
+
+
+def _uint8(rgb: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float colours in [0, 1] (clipped) as uint8."""
+    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

@@ -1,5 +1,6 @@
 """The run report opens in headless Chromium from file://: every image loads, the metrics table shows the run's numbers."""
 
+import json
 import shutil
 from pathlib import Path
 
@@ -98,3 +99,18 @@ def test_report_without_optional_inputs_skips_their_sections(browser, tmp_path):
     assert page["images"] == []
     assert page["headings"] == ["Metrics"]
     assert page["cells"] == {"frames": "3", "trajectory": "-"}
+
+
+def test_reconstruct_run_report_shows_the_run_metrics(browser, synthetic_sequence_dir, tmp_path):
+    """A real (short) run: its report/index.html shows metrics.json's numbers and all its images load."""
+    from pipelines.reconstruct import reconstruct
+    from tambridge.config import load_config
+
+    config = load_config(None, ["mapper.enabled=false", "input.max_frames=12"])
+    reconstruct(synthetic_sequence_dir, tmp_path / "run", config, progress=False)
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert (tmp_path / "run" / "report" / "index.html").is_file()
+    page = _open(browser, tmp_path / "run" / "report" / "index.html")
+    assert page["images"] and all(image["complete"] and image["width"] > 0 for image in page["images"])
+    assert page["cells"]["trajectory.ate_rmse_m"] == format_metric(metrics["trajectory"]["ate_rmse_m"])
+    assert page["cells"]["frames"] == "12"
