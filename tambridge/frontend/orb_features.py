@@ -142,7 +142,8 @@ class OrbExtractor:
             return FrameFeatures.empty()
         points = cv2.KeyPoint_convert(kept).astype(np.float64)
         octaves = np.fromiter((k.octave for k in kept), np.int32, len(kept))
-        return lift_keypoints(points, octaves, descriptors, rgb, depth_m, camera, config.min_depth_m, config.max_depth_m)
+        return lift_keypoints(points, octaves, descriptors, rgb, depth_m, camera, config.min_depth_m, config.max_depth_m,
+                              config.depth_edge_window_px, config.depth_edge_ratio)
 
 
 def lift_keypoints(
@@ -154,12 +155,26 @@ def lift_keypoints(
     camera: Camera,
     min_depth_m: float,
     max_depth_m: float,
+    edge_window_px: int = 0,
+    edge_ratio: float = np.inf,
 ) -> FrameFeatures:
-    """Attach depth (nearest pixel; outside [min, max] counts as none), colour and camera-frame 3D points."""
+    """Attach depth, colour and camera-frame 3D points to keypoints (N, 2).
+
+    Depth is the nearest pixel's; it counts as none outside [min, max], and (with ``edge_window_px`` > 0) where
+    the depth in the ``2 * edge_window_px + 1`` square around the keypoint has a hole or spans more than
+    ``edge_ratio`` times the depth: corners often sit on depth edges, where a pixel of colour-depth
+    misregistration puts the point on the wrong surface.
+    """
     columns = np.clip(np.round(keypoints_px[:, 0]).astype(np.int64), 0, camera.width - 1)
     rows = np.clip(np.round(keypoints_px[:, 1]).astype(np.int64), 0, camera.height - 1)
     depth = depth_m[rows, columns].astype(np.float64)
     depth[~np.isfinite(depth) | (depth < min_depth_m) | (depth > max_depth_m)] = 0.0
+    if edge_window_px > 0:
+        offsets = np.arange(-edge_window_px, edge_window_px + 1)
+        patch = depth_m[np.clip(rows[:, None, None] + offsets[None, :, None], 0, camera.height - 1),
+                        np.clip(columns[:, None, None] + offsets[None, None, :], 0, camera.width - 1)].reshape(len(depth), -1)
+        span = patch.max(axis=1) - patch.min(axis=1)
+        depth[(patch.min(axis=1) <= 0) | ~(span <= edge_ratio * depth)] = 0.0
     points = np.stack(
         [(keypoints_px[:, 0] - camera.cx) / camera.fx * depth, (keypoints_px[:, 1] - camera.cy) / camera.fy * depth, depth],
         axis=1,

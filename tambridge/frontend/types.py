@@ -36,11 +36,16 @@ class OrbFrontendConfig:
     # Keypoints nearer the border than this are not detected (ORB-SLAM: 19; smaller for tiny images).
     edge_threshold_px: int = 19
     min_depth_m: float = 0.1
+    # A keypoint's depth is dropped where the depth around it (window radius in px) jumps by more than this
+    # fraction: depth edges, where colour-depth misregistration makes depth unreliable (0 px: keep all).
+    depth_edge_window_px: int = 1
+    depth_edge_ratio: float = 0.05
     max_depth_m: float = 8.0
     # Points closer than this (ORB-SLAM's ThDepth = 40 baselines) are "close": their depth is trusted.
     close_depth_m: float = 3.2
-    # RGB-D BA: depth enters as the virtual right-image coordinate u_R = u - bf/z (ORB-SLAM2), bf = baseline*fx.
-    virtual_baseline_m: float = 0.08
+    # RGB-D residuals: inverse depth with sigma_z = k z^2. The default trusts depth about as much as ORB-SLAM2's
+    # virtual-stereo model does for a Kinect; 0.003 is the sensor's own noise (right for clean synthetic depth).
+    depth_noise_per_m: float = 0.02
     depth_residuals: bool = True
     # Matching by projecting local-map points with the motion prior.
     search_radius_px: float = 15.0
@@ -55,7 +60,7 @@ class OrbFrontendConfig:
     relocalisation_min_inliers: int = 50
     # Keyframe insertion (ORB-SLAM2): tracked-point ratio to the reference keyframe, frames since the last one.
     keyframe_tracked_ratio: float = 0.75
-    keyframe_min_frames: int = 0
+    keyframe_min_frames: int = 5
     keyframe_max_frames: int = 30
     min_new_points: int = 100
     covisibility_min_shared: int = 15
@@ -71,6 +76,11 @@ class OrbFrontendConfig:
     loop_cooldown_keyframes: int = 10
     global_ba: bool = True
     global_ba_iterations: int = 10
+
+    @property
+    def depth_noise(self) -> float:
+        """k of the inverse-depth residual, 0 when depth residuals are off."""
+        return self.depth_noise_per_m if self.depth_residuals else 0.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,0 +1,144 @@
+"""Frontends side by side on real data: ORB without and with loop closure + global BA, the Open3D keyframe
+frontend, and plain frame-to-frame Open3D RGB-D odometry (the peer).
+
+    python benchmarks/frontend.py                                 # both sequences, full length
+    python benchmarks/frontend.py --max-frames 200 --methods orb  # a subset
+
+Each (method, sequence) runs in its own process. frames/s counts only the time inside ``track`` and
+``finish`` (reading and decoding images is excluded and reported apart as ``read s``); peak memory is the
+child's ``ru_maxrss`` (read with wait4, so it includes the decoded images and Python itself). ATE is the RMSE
+after SE(3) alignment; RPE is the translational RMSE between consecutive frames. The table goes to stdout,
+the rows to benchmarks/results/frontend.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tambridge.export.atomic import atomic_write_text  # noqa: E402
+
+SEQUENCES = ("7scenes_redkitchen_0-699", "tum_fr1_xyz_first37")
+METHODS = {
+    "orb": "ORB, no loop closure",
+    "orb_loop": "ORB + loop closure + global BA",
+    "open3d": "Open3D keyframes + pose graph",
+    "open3d_f2f": "Open3D frame-to-frame (peer)",
+}
+
+
+def make_frontend(method: str, camera):
+    from tambridge.frontend.open3d_frontend import Open3dFrontend
+    from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
+    from tambridge.frontend.orb_frontend import OrbFrontend
+    from tambridge.frontend.types import OrbFrontendConfig
+
+    if method == "orb":
+        return OrbFrontend(camera, OrbFrontendConfig(loop_closure=False, global_ba=False))
+    if method == "orb_loop":
+        return OrbFrontend(camera, OrbFrontendConfig())
+    if method == "open3d":
+        return Open3dFrontend(camera)
+    if method == "open3d_f2f":
+        return FrameToFrameOdometry(camera)
+    raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
+
+
+def run_one(method: str, folder: Path, max_frames: int | None, output: Path) -> None:
+    """Child process: track the sequence, evaluate, write one JSON row."""
+    from tambridge.evaluation.trajectory import evaluate_trajectory
+    from tambridge.io.tum import open_sequence
+
+    sequence = open_sequence(folder, max_frames=max_frames)
+    frontend = make_frontend(method, sequence.camera)
+    tracking_s = reading_s = 0.0
+    for index in range(len(sequence)):
+        started = time.perf_counter()
+        frame = sequence[index]
+        reading_s += time.perf_counter() - started
+        started = time.perf_counter()
+        frontend.track(frame)
+        tracking_s += time.perf_counter() - started
+    started = time.perf_counter()
+    result = frontend.finish()
+    tracking_s += time.perf_counter() - started
+    errors = evaluate_trajectory(result.trajectory, sequence.ground_truth, align="se3")
+    row = {
+        "method": METHODS[method], "key": method, "sequence": folder.name, "frames": len(sequence),
+        "ate_cm": 100 * errors.ate_rmse_m, "rpe_cm": 100 * errors.rpe_trans_rmse_m, "rpe_deg": errors.rpe_rot_rmse_deg,
+        "fps": len(sequence) / tracking_s, "tracking_s": tracking_s, "read_s": reading_s,
+        "keyframes": len(result.keyframe_poses), "loops": result.loops_closed, "lost": result.frames_lost,
+        "relocalised": result.frames_relocalised, "stage_s": result.timings_s,
+    }
+    atomic_write_text(output, json.dumps(row))
+
+
+def run_child(method: str, folder: Path, max_frames: int | None) -> dict:
+    with tempfile.TemporaryDirectory() as temp:
+        output = Path(temp) / "row.json"
+        command = [sys.executable, __file__, "--one", method, str(folder), str(output)]
+        if max_frames is not None:
+            command += ["--max-frames", str(max_frames)]
+        child = subprocess.Popen(command, cwd=ROOT)
+        _, status, usage = os.wait4(child.pid, 0)
+        code = os.waitstatus_to_exitcode(status)
+        row = json.loads(output.read_text()) if code == 0 and output.is_file() else {
+            "method": METHODS[method], "key": method, "sequence": folder.name}
+        row.update(exit_status=code, peak_memory_mb=usage.ru_maxrss / 1024.0)
+        return row
+
+
+def format_table(rows: list[dict]) -> str:
+    columns = [("sequence", "sequence", "{}"), ("method", "method", "{}"), ("frames", "frames", "{}"),
+               ("ATE cm", "ate_cm", "{:.2f}"), ("RPE cm/frame", "rpe_cm", "{:.2f}"), ("RPE deg/frame", "rpe_deg", "{:.3f}"),
+               ("frames/s", "fps", "{:.1f}"), ("read s", "read_s", "{:.1f}"), ("peak MB", "peak_memory_mb", "{:.0f}"),
+               ("keyframes", "keyframes", "{}"), ("loops", "loops", "{}"), ("lost", "lost", "{}")]
+    lines = ["| " + " | ".join(title for title, _, _ in columns) + " |", "|" + "---|" * len(columns)]
+    for row in rows:
+        cells = [("-" if row.get(key) is None else form.format(row[key])) for _, key, form in columns]
+        lines.append("| " + " | ".join(cells) + " |")
+    stage_lines = ["", "seconds per stage (ORB: features, matching incl. fusion, pnp incl. motion-only refinement, "
+                   "local BA, loop incl. bag of words; Open3D: features = RGBD images and clouds, matching = odometry):"]
+    for row in rows:
+        if row.get("stage_s"):
+            stages = ", ".join(f"{k} {v:.1f}" for k, v in row["stage_s"].items() if v > 0)
+            stage_lines.append(f"  {row['sequence']} / {row['method']}: {stages}")
+    return "\n".join(lines + stage_lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    parser.add_argument("--sequences", nargs="*", default=list(SEQUENCES))
+    parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
+    parser.add_argument("--max-frames", type=int)
+    parser.add_argument("--one", nargs=3, metavar=("METHOD", "FOLDER", "OUTPUT"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        method, folder, output = args.one
+        run_one(method, Path(folder), args.max_frames, Path(output))
+        return
+    rows = []
+    for name in args.sequences:
+        for method in args.methods:
+            rows.append(run_child(method, args.data / name, args.max_frames))
+            print(f"{name} / {METHODS[method]}: done", file=sys.stderr, flush=True)
+    table = format_table(rows)
+    print(table)
+    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    report = {"command": " ".join(sys.argv), "machine": machine, "rows": rows}
+    atomic_write_text(ROOT / "benchmarks" / "results" / "frontend.json", json.dumps(report, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,192 @@
+"""What the map does when a keyframe arrives: new map points from depth, point culling, local and global BA."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tambridge.camera import Camera
+from tambridge.frontend.bundle_adjustment import BundleOptions, BundleProblem, solve_bundle_adjustment
+from tambridge.frontend.map_matching import match_map_points
+from tambridge.frontend.matching import build_keypoint_grid
+from tambridge.frontend.reprojection import rgbd_observations
+from tambridge.frontend.slam_map import Keyframe, SlamMap
+from tambridge.frontend.types import OrbFrontendConfig
+from tambridge.geometry import inverse, transform_points
+
+
+def create_points_from_depth(slam_map: SlamMap, keyframe: Keyframe, config: OrbFrontendConfig) -> int:
+    """Map points for keypoints without one that have depth (ORB-SLAM2 RGB-D): every close one (depth below
+    ``close_depth_m``), and at least the ``min_new_points`` closest. Returns how many were made."""
+    features = keyframe.features
+    free = np.flatnonzero((keyframe.point_ids < 0) & features.has_depth)
+    if free.size == 0:
+        return 0
+    free = free[np.argsort(features.depth_m[free], kind="stable")]
+    close = features.depth_m[free] < config.close_depth_m
+    chosen = free[close | (np.arange(free.size) < config.min_new_points)]
+    positions = transform_points(keyframe.world_from_camera, features.points_camera_m[chosen])
+    ids = slam_map.points.add(
+        positions, features.descriptors[chosen], features.colours[chosen], keyframe.centre_m,
+        features.octaves[chosen], keyframe.id, config.scale_factor, config.n_levels,
+    )
+    keyframe.point_ids[chosen] = ids
+    return len(ids)
+
+
+FUSE_RADIUS_PX = 3.0  # ORB-SLAM's Fuse searches 3 px (times the octave scale) around the projection
+FUSE_NEIGHBOURS = 10
+
+
+def fuse_points(
+    slam_map: SlamMap, keyframe: Keyframe, point_ids: np.ndarray, camera: Camera, config: OrbFrontendConfig,
+    incoming_wins: bool = False,
+) -> tuple[list[int], list[int]]:
+    """Project ``point_ids`` into a keyframe and attach each to the keypoint it matches (ORB-SLAM's Fuse).
+
+    A matched keypoint without a point gains an observation; one that has another point yields a merge pair
+    ``(old, new)``: the point with fewer observations goes, unless ``incoming_wins`` (loop closing keeps the
+    loop side). Points the keyframe already sees are skipped. Returns the merge pairs for
+    :meth:`SlamMap.replace_points`.
+    """
+    candidates = np.setdiff1d(point_ids, keyframe.point_ids, assume_unique=False)
+    if candidates.size == 0:
+        return [], []
+    grid = build_keypoint_grid(keyframe.features.keypoints_px, camera.width, camera.height)
+    keypoints, ids, _ = match_map_points(slam_map, candidates, keyframe.camera_from_world, keyframe.features, grid,
+                                         camera, config, FUSE_RADIUS_PX)
+    current = keyframe.point_ids[keypoints]
+    has_point = slam_map.points.good(current)
+    keyframe.point_ids[keypoints[~has_point]] = ids[~has_point]
+    old, new = current[has_point], ids[has_point]
+    if not incoming_wins:
+        observations = slam_map.points.observations
+        swap = observations[old] > observations[new]
+        old, new = np.where(swap, new, old), np.where(swap, old, new)
+    slam_map.drop_duplicate_observations(keyframe)
+    return list(old), list(new)
+
+
+def fuse_with_neighbours(slam_map: SlamMap, keyframe: Keyframe, camera: Camera, config: OrbFrontendConfig) -> None:
+    """Fuse the new keyframe's points into its covisible keyframes and theirs into it (SearchInNeighbors),
+    so that points seen from several keyframes carry all those observations and duplicates merge."""
+    neighbours = [slam_map.keyframes[i] for i in keyframe.best_covisible(FUSE_NEIGHBOURS)]
+    neighbours = [k for k in neighbours if k.segment == keyframe.segment]
+    if not neighbours:
+        return
+    olds, news = fuse_points(slam_map, keyframe, slam_map.points_of(neighbours), camera, config)
+    own = slam_map.good_point_ids(keyframe)
+    for neighbour in neighbours:
+        o, n = fuse_points(slam_map, neighbour, own, camera, config)
+        olds += o
+        news += n
+    slam_map.replace_points(np.array(olds, np.int64), np.array(news, np.int64))
+    slam_map.recount_observations()
+    for k in [keyframe] + neighbours:
+        slam_map.update_covisibility(k, config.covisibility_min_shared)
+
+
+def cull_recent_points(slam_map: SlamMap, keyframe: Keyframe) -> int:
+    """ORB-SLAM's MapPointCulling over points made in the last three keyframes: bad if matched in under a quarter
+    of the frames that saw them in view, or if two keyframes later no second keyframe observes them."""
+    points = slam_map.points
+    n = points.count
+    recent = np.flatnonzero(~points.bad[:n] & (points.first_keyframe[:n] >= keyframe.id - 3))
+    ratio = points.found[recent] / np.maximum(points.visible[recent], 1)
+    old_enough = keyframe.id - points.first_keyframe[recent] >= 2
+    bad = recent[(ratio < 0.25) | (old_enough & (points.observations[recent] < 2))]
+    points.bad[bad] = True
+    return len(bad)
+
+
+def _inv_sigma2(octaves: np.ndarray, scale_factor: float) -> np.ndarray:
+    return scale_factor ** (-2.0 * octaves)
+
+
+def adjust_bundle(
+    slam_map: SlamMap,
+    variable: list[Keyframe],
+    point_ids: np.ndarray,
+    fixed_ids: set[int],
+    K: np.ndarray,
+    config: OrbFrontendConfig,
+    iterations: int,
+) -> int:
+    """BA over the ``variable`` keyframes (minus ``fixed_ids``) and the points ``point_ids``; every other keyframe
+    seeing those points joins as a fixed camera. Runs half the iterations, drops the outlier observations
+    (chi2 beyond the 95% quantile) from their keyframes, then runs the rest. Returns the observations dropped.
+    """
+    points = slam_map.points
+    mask = np.zeros(points.count, bool)
+    mask[point_ids] = True
+    seen = slam_map.observers(mask)
+    variable_ids = {k.id for k in variable} - fixed_ids
+    cameras = sorted(seen)
+    if not variable_ids & set(cameras):
+        return 0
+    camera_index = {kf_id: i for i, kf_id in enumerate(cameras)}
+    point_index = np.full(points.count, -1, np.int64)
+    point_index[point_ids] = np.arange(len(point_ids))
+    obs_camera, obs_keypoint = [], []
+    for kf_id in cameras:
+        obs_camera.append(np.full(len(seen[kf_id]), camera_index[kf_id]))
+        obs_keypoint.append(seen[kf_id])
+    obs_camera = np.concatenate(obs_camera)
+    obs_keypoint = np.concatenate(obs_keypoint)
+    keyframes = [slam_map.keyframes[i] for i in cameras]
+    obs_kf = np.array(cameras)[obs_camera]
+    keypoints = np.concatenate([keyframes[i].features.keypoints_px[seen[kf]] for i, kf in enumerate(cameras)])
+    depth = np.concatenate([keyframes[i].features.depth_m[seen[kf]] for i, kf in enumerate(cameras)])
+    octaves = np.concatenate([keyframes[i].features.octaves[seen[kf]] for i, kf in enumerate(cameras)])
+    obs_point_id = np.concatenate([keyframes[i].point_ids[seen[kf]] for i, kf in enumerate(cameras)])
+    problem = BundleProblem(
+        camera_from_world=np.stack([k.camera_from_world for k in keyframes]),
+        points_world=points.positions_m[point_ids].copy(),
+        observation_camera=obs_camera,
+        observation_point=point_index[obs_point_id],
+        observations=rgbd_observations(keypoints, depth),
+        inv_sigma2=_inv_sigma2(octaves, config.scale_factor),
+        fixed_cameras=np.array([kf_id not in variable_ids for kf_id in cameras]),
+        K=K,
+        depth_noise_per_m=config.depth_noise,
+    )
+    options = BundleOptions(iterations=max(1, iterations // 2))
+    solution = solve_bundle_adjustment(problem, options)
+    outliers = solution.outliers
+    if outliers.any():
+        keep = ~outliers
+        problem = BundleProblem(
+            solution.camera_from_world, solution.points_world, obs_camera[keep], problem.observation_point[keep],
+            problem.observations[keep], problem.inv_sigma2[keep], problem.fixed_cameras, K, config.depth_noise,
+        )
+        solution = solve_bundle_adjustment(problem, BundleOptions(iterations=max(1, iterations - options.iterations)))
+        for kf_id, keypoint in zip(obs_kf[outliers], obs_keypoint[outliers]):
+            slam_map.keyframes[kf_id].point_ids[keypoint] = -1
+    for i, keyframe in enumerate(keyframes):
+        if keyframe.id in variable_ids:
+            keyframe.world_from_camera = inverse(solution.camera_from_world[i])
+    points.positions_m[point_ids] = solution.points_world
+    if outliers.any():
+        slam_map.recount_observations()
+    return int(outliers.sum())
+
+
+def local_bundle_adjustment(slam_map: SlamMap, keyframe: Keyframe, K: np.ndarray, config: OrbFrontendConfig) -> int:
+    """Local BA: the new keyframe and its best covisible keyframes move; the first keyframe of a segment stays."""
+    local = [keyframe] + [slam_map.keyframes[i] for i in keyframe.best_covisible(config.local_ba_keyframes - 1)]
+    local = [k for k in local if k.segment == keyframe.segment]
+    fixed = {k.id for k in local if k.id == _segment_start(slam_map, k.segment)}
+    dropped = adjust_bundle(slam_map, local, slam_map.points_of(local), fixed, K, config, config.local_ba_iterations)
+    for k in local:
+        slam_map.update_covisibility(k, config.covisibility_min_shared)
+    return dropped
+
+
+def global_bundle_adjustment(slam_map: SlamMap, K: np.ndarray, config: OrbFrontendConfig) -> int:
+    """Global BA over every keyframe and good point; the first keyframe stays fixed (the gauge)."""
+    every = slam_map.keyframes
+    point_ids = np.flatnonzero(~slam_map.points.bad[: slam_map.points.count] & (slam_map.points.observations[: slam_map.points.count] > 0))
+    return adjust_bundle(slam_map, every, point_ids, {every[0].id}, K, config, config.global_ba_iterations)
+
+
+def _segment_start(slam_map: SlamMap, segment: int) -> int:
+    return next(k.id for k in slam_map.keyframes if k.segment == segment)

@@ -1,0 +1,387 @@
+"""The tracking-centred ORB RGB-D frontend (paper sec. 3.2, "ORB visual odometry similar to ORB-SLAM3").
+
+Per frame: ORB features with depth -> map points of the local map projected with the constant-velocity
+prior and matched by descriptor near their projection -> PnP-RANSAC -> motion-only refinement with a Huber
+kernel -> a second, tighter projection search and refinement. Tracking a frame decides whether it becomes a
+keyframe (ORB-SLAM2's rules); a keyframe adds map points from its depth, culls bad recent points, runs local
+BA, and looks for a loop (bag of words, PnP verification, pose graph, point fusion). A lost frame tries
+relocalisation against the keyframes; failing that it is reported (warning) and, after a few failures, a new
+map segment starts, to be joined to the old one by the next loop closure. ``finish()`` runs global BA and
+re-anchors every frame to its reference keyframe.
+
+Everything runs in the caller's thread, so the timings in ``timings_s`` add up to the time spent in ``track``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from contextlib import contextmanager
+
+import numpy as np
+
+from tambridge.camera import Camera
+from tambridge.frontend.local_mapping import (
+    create_points_from_depth,
+    cull_recent_points,
+    fuse_with_neighbours,
+    global_bundle_adjustment,
+    local_bundle_adjustment,
+)
+from tambridge.frontend.loop_closing import close_loop, detect_loop
+from tambridge.frontend.map_matching import PoseFix, localise, match_map_points, refine_with_matches
+from tambridge.frontend.matching import build_keypoint_grid
+from tambridge.frontend.orb_features import FrameFeatures, OrbExtractor
+from tambridge.frontend.pose_estimation import solve_pnp_ransac
+from tambridge.frontend.slam_map import Keyframe, SlamMap
+from tambridge.frontend.types import (
+    FrontendResult,
+    KeyframeEvent,
+    OrbFrontendConfig,
+    TrackResult,
+    empty_timings,
+)
+from tambridge.frontend.vocabulary import KeyframeDatabase, Vocabulary
+from tambridge.geometry import inverse
+from tambridge.io.tum import Frame
+from tambridge.trajectory import Trajectory
+
+logger = logging.getLogger("tambridge.frontend.orb")
+
+MIN_KEYPOINTS_WITH_DEPTH_TO_START = 50
+LOST_FRAMES_BEFORE_NEW_SEGMENT = 3
+RELOCALISATION_CANDIDATES = 5
+
+
+@dataclasses.dataclass
+class _FrameRecord:
+    """A frame's pose relative to its reference keyframe (or absolute when there is none yet)."""
+
+    frame_index: int
+    timestamp_s: float
+    reference_keyframe: int
+    reference_from_camera: np.ndarray
+    tracked: bool
+
+
+class OrbFrontend:
+    """Streaming ORB RGB-D frontend; see the module docstring and :class:`~tambridge.frontend.types.Frontend`."""
+
+    def __init__(
+        self,
+        camera: Camera,
+        config: OrbFrontendConfig = OrbFrontendConfig(),
+        world_from_first_camera: np.ndarray | None = None,
+    ) -> None:
+        self.camera = camera
+        self.config = config
+        self.K = camera.K
+        self.map = SlamMap()
+        self.extractor = OrbExtractor(camera, config)
+        self.vocabulary = Vocabulary.load(None if config.vocabulary_path is None else config.vocabulary_path)
+        self.database = KeyframeDatabase(self.vocabulary.n_words)
+        self.timings_s = empty_timings()
+        self.frames_lost = 0
+        self.frames_relocalised = 0
+        self.loops_closed = 0
+        self._world_from_first = np.eye(4) if world_from_first_camera is None else np.asarray(world_from_first_camera, float)
+        self._records: list[_FrameRecord] = []
+        self._camera_from_world_last: np.ndarray | None = None
+        self._motion = np.eye(4)  # current_from_previous camera motion: the constant-velocity prior
+        self._reference: Keyframe | None = None
+        self._frames_since_keyframe = 0
+        self._lost_streak = 0
+        self._segment = -1
+        self._keyframes_since_loop = 1 << 30
+
+    @contextmanager
+    def _timed(self, stage: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings_s[stage] += time.perf_counter() - start
+
+    # ------------------------------------------------------------------ per frame
+    def track(self, frame: Frame) -> TrackResult:
+        """Localise one frame (frames must come in order); see :class:`~tambridge.frontend.types.TrackResult`."""
+        with self._timed("features"):
+            features = self.extractor.extract(frame.rgb, frame.depth_m)
+        if self._reference is None:
+            started = self._start_segment(frame, features)
+            return started if started is not None else self._lost(frame, features, "no map to track against")
+        predicted = self._motion @ self._camera_from_world_last
+        grid = build_keypoint_grid(features.keypoints_px, self.camera.width, self.camera.height)
+        radius_scale = 2.0 if self._lost_streak else 1.0
+        fix, in_view = self._track_local_map(features, grid, predicted, radius_scale)
+        relocalised = False
+        if fix is None or fix.inlier_count < self.config.min_inliers:
+            relocalisation = self._relocalise(features, grid)
+            if relocalisation is None:
+                if self._lost_streak >= LOST_FRAMES_BEFORE_NEW_SEGMENT:
+                    started = self._start_segment(frame, features)
+                    if started is not None:
+                        return started
+                inliers = 0 if fix is None else fix.inlier_count
+                return self._lost(frame, features, f"{inliers} inliers, relocalisation failed")
+            fix, in_view = relocalisation
+            relocalised = True
+        if self._lost_streak or relocalised:
+            self.frames_relocalised += 1
+            logger.info("frame %d (t=%.6f): tracking recovered after %d lost frame(s), %d inliers%s",
+                        frame.index, frame.timestamp_s, self._lost_streak, fix.inlier_count,
+                        " (relocalised against keyframes)" if relocalised else "")
+        if not self._lost_streak:
+            # After lost frames the last pose was a prediction: keep the velocity from before the loss.
+            self._motion = fix.camera_from_world @ inverse(self._camera_from_world_last)
+        self._lost_streak = 0
+        points = self.map.points
+        points.visible[in_view] += 1
+        points.found[fix.point_ids] += 1
+        self._reference = self._best_reference(fix)
+        self._frames_since_keyframe += 1
+        keyframe_event, loop_closed = None, False
+        camera_from_world = fix.camera_from_world
+        if self._need_keyframe(features, fix):
+            keyframe, loop_closed = self._insert_keyframe(frame, features, fix)
+            keyframe_event = self._keyframe_event(keyframe)
+            camera_from_world = keyframe.camera_from_world
+        self._camera_from_world_last = camera_from_world
+        self._record(frame, camera_from_world, tracked=True)
+        return TrackResult(
+            frame_index=frame.index,
+            timestamp_s=frame.timestamp_s,
+            world_from_camera=inverse(camera_from_world),
+            tracked=True,
+            is_keyframe=keyframe_event is not None,
+            inlier_count=fix.inlier_count,
+            relocalised=relocalised,
+            loop_closed=loop_closed,
+            keyframe=keyframe_event,
+        )
+
+    def _track_local_map(
+        self, features: FrameFeatures, grid, predicted: np.ndarray, radius_scale: float
+    ) -> tuple[PoseFix | None, np.ndarray]:
+        """Two projection searches of the local map (wide with the prior, tight with the refined pose)."""
+        config = self.config
+        local = self.map.local_keyframes(self._reference, config.local_map_keyframes)
+        point_ids = self.map.points_of(local)
+        with self._timed("matching"):
+            keypoints, ids, _ = match_map_points(self.map, point_ids, predicted, features, grid, self.camera, config,
+                                                 radius_scale * config.search_radius_px)
+        if len(ids) < config.min_inliers // 2:
+            return None, np.zeros(0, np.int64)
+        with self._timed("pnp"):
+            camera_from_world, _ = solve_pnp_ransac(self.map.points.positions_m[ids], features.keypoints_px[keypoints],
+                                                    self.K, predicted, config.pnp_reprojection_px, config.pnp_iterations)
+            fix = refine_with_matches(predicted if camera_from_world is None else camera_from_world,
+                                      features, keypoints, ids, self.map, self.K, config)
+        with self._timed("matching"):
+            keypoints, ids, in_view = match_map_points(self.map, point_ids, fix.camera_from_world, features, grid,
+                                                       self.camera, config, config.refine_radius_px)
+        if len(ids) < config.min_inliers // 2:
+            return fix, in_view
+        with self._timed("pnp"):
+            refined = refine_with_matches(fix.camera_from_world, features, keypoints, ids, self.map, self.K, config)
+        return refined, in_view
+
+    def _relocalise(self, features: FrameFeatures, grid) -> tuple[PoseFix, np.ndarray] | None:
+        """Bag-of-words candidates, each verified by :func:`localise`; then the local map around the winner."""
+        if len(features) < self.config.relocalisation_min_inliers:
+            return None
+        with self._timed("loop"):
+            words, weights = self.vocabulary.transform(features.descriptors)
+            candidates, _ = self.database.query(words, weights)
+        with self._timed("pnp"):
+            for keyframe_id in candidates[:RELOCALISATION_CANDIDATES]:
+                keyframe = self.map.keyframes[int(keyframe_id)]
+                group = [keyframe] + [self.map.keyframes[i] for i in keyframe.best_covisible(5)]
+                fix = localise(self.map, features, grid, self.map.points_of(group), self.camera, self.config,
+                               self.config.relocalisation_min_inliers)
+                if fix is not None and fix.inlier_count >= self.config.relocalisation_min_inliers:
+                    self._reference = keyframe
+                    tracked, in_view = self._track_local_map(features, grid, fix.camera_from_world, 1.0)
+                    if tracked is not None and tracked.inlier_count >= fix.inlier_count:
+                        return tracked, in_view
+                    return fix, np.zeros(0, np.int64)
+        return None
+
+    def _lost(self, frame: Frame, features: FrameFeatures, reason: str) -> TrackResult:
+        """Count and report a frame that could not be localised; its pose is the constant-velocity prediction."""
+        self.frames_lost += 1
+        self._lost_streak += 1
+        if self._camera_from_world_last is None:
+            predicted = inverse(self._world_from_first)
+        else:
+            predicted = self._motion @ self._camera_from_world_last
+            self._camera_from_world_last = predicted
+        logger.warning(
+            "frame %d (t=%.6f): tracking lost (%s; %d keypoints); its pose is the constant-velocity prediction%s",
+            frame.index, frame.timestamp_s, reason, len(features),
+            "; a new map segment starts at the next frame with depth" if self._lost_streak >= LOST_FRAMES_BEFORE_NEW_SEGMENT else "",
+        )
+        self._record(frame, predicted, tracked=False)
+        return TrackResult(frame.index, frame.timestamp_s, inverse(predicted), tracked=False, is_keyframe=False, inlier_count=0)
+
+    def _start_segment(self, frame: Frame, features: FrameFeatures) -> TrackResult | None:
+        """First keyframe of a map segment from the frame's depth (None if it has too little depth)."""
+        if int(features.has_depth.sum()) < MIN_KEYPOINTS_WITH_DEPTH_TO_START:
+            return None
+        previous = self.map.keyframes[-1] if self.map.keyframes else None
+        if self._camera_from_world_last is None:
+            camera_from_world = inverse(self._world_from_first)
+        else:
+            camera_from_world = self._motion @ self._camera_from_world_last
+        self._segment += 1
+        fix = PoseFix(camera_from_world, np.zeros(0, np.int64), np.zeros(0, np.int64))
+        keyframe, _ = self._insert_keyframe(frame, features, fix, run_mapping=False)
+        if previous is not None:
+            self.map.segment_links.append((previous.id, keyframe.id, camera_from_world @ previous.world_from_camera))
+            logger.warning(
+                "frame %d (t=%.6f): starting map segment %d at the predicted pose after %d lost frames; "
+                "it joins the earlier map at the next loop closure",
+                frame.index, frame.timestamp_s, self._segment, self._lost_streak,
+            )
+        self._lost_streak = 0
+        self._motion = np.eye(4)
+        self._camera_from_world_last = camera_from_world
+        self._record(frame, camera_from_world, tracked=previous is None)
+        return TrackResult(frame.index, frame.timestamp_s, inverse(camera_from_world), tracked=previous is None,
+                           is_keyframe=True, inlier_count=0, keyframe=self._keyframe_event(keyframe))
+
+    # ------------------------------------------------------------------ keyframes
+    def _best_reference(self, fix: PoseFix) -> Keyframe:
+        """The keyframe whose points the frame matched most (ORB-SLAM's reference keyframe)."""
+        if fix.inlier_count == 0:
+            return self._reference
+        votes = np.bincount(self.map.points.reference_keyframe[fix.point_ids])
+        best = self.map.keyframes[int(np.argmax(votes))]
+        return best if best.segment == self._segment else self._reference
+
+    def _need_keyframe(self, features: FrameFeatures, fix: PoseFix) -> bool:
+        """ORB-SLAM2's NeedNewKeyFrame for RGB-D (local mapping is never busy here)."""
+        config = self.config
+        points = self.map.points
+        reference_ids = self.map.good_point_ids(self._reference)
+        # ORB-SLAM counts an observation with depth twice and asks for 3 (2 with few keyframes): 2 keyframes (1).
+        min_observations = 2 if len(self.map.keyframes) > 2 else 1
+        reference_tracked = int((points.observations[reference_ids] >= min_observations).sum())
+        matched = np.zeros(len(features), bool)
+        matched[fix.keypoint_indices] = True
+        close = features.has_depth & (features.depth_m < config.close_depth_m)
+        need_close = int((close & matched).sum()) < 100 and int((close & ~matched).sum()) > 70
+        ratio = 0.4 if len(self.map.keyframes) < 2 else config.keyframe_tracked_ratio
+        inliers = fix.inlier_count
+        c1a = self._frames_since_keyframe >= config.keyframe_max_frames
+        c1b = self._frames_since_keyframe >= config.keyframe_min_frames
+        c1c = inliers < 0.25 * reference_tracked or need_close
+        c2 = (inliers < ratio * reference_tracked or need_close) and inliers > 15
+        return (c1a or c1b or c1c) and c2
+
+    def _insert_keyframe(self, frame: Frame, features: FrameFeatures, fix: PoseFix, run_mapping: bool = True) -> tuple[Keyframe, bool]:
+        """Make the frame a keyframe, extend the map, run local BA and loop closing; returns (keyframe, loop closed)."""
+        config = self.config
+        keyframe = Keyframe(
+            id=len(self.map.keyframes),
+            frame_index=frame.index,
+            timestamp_s=frame.timestamp_s,
+            world_from_camera=inverse(fix.camera_from_world),
+            features=features,
+            point_ids=np.full(len(features), -1, np.int64),
+            segment=self._segment,
+        )
+        keyframe.point_ids[fix.keypoint_indices] = fix.point_ids
+        self.map.keyframes.append(keyframe)
+        self.map.points.observations[fix.point_ids] += 1
+        create_points_from_depth(self.map, keyframe, config)
+        self.map.update_covisibility(keyframe, config.covisibility_min_shared)
+        with self._timed("loop"):
+            keyframe.bow_words, keyframe.bow_weights = self.vocabulary.transform(features.descriptors)
+        loop_closed = False
+        if run_mapping:
+            cull_recent_points(self.map, keyframe)
+            with self._timed("matching"):
+                fuse_with_neighbours(self.map, keyframe, self.camera, self.config)
+            with self._timed("local_ba"):
+                local_bundle_adjustment(self.map, keyframe, self.K, config)
+            if config.loop_closure and self._keyframes_since_loop >= config.loop_cooldown_keyframes:
+                with self._timed("loop"):
+                    loop = detect_loop(self.map, keyframe, self.database, self.camera, config)
+                    if loop is not None:
+                        close_loop(self.map, keyframe, loop, self.camera, config)
+                        self.loops_closed += 1
+                        self._keyframes_since_loop = 0
+                        loop_closed = True
+        self._keyframes_since_loop += 1
+        with self._timed("loop"):
+            self.database.add(keyframe.id, keyframe.bow_words, keyframe.bow_weights)
+        self._reference = keyframe
+        self._frames_since_keyframe = 0
+        return keyframe, loop_closed
+
+    def _keyframe_event(self, keyframe: Keyframe) -> KeyframeEvent:
+        """What the Fusion Bridge gets: the keyframe's matched map points and the view-selection counts."""
+        good = self.map.points.good(keyframe.point_ids)
+        ids = keyframe.point_ids[good]
+        shared, previous_total = 0, 0
+        if keyframe.id > 0:
+            previous_ids = self.map.good_point_ids(self.map.keyframes[keyframe.id - 1])
+            shared = int(np.intersect1d(ids, previous_ids).size)
+            previous_total = int(previous_ids.size)
+        return KeyframeEvent(
+            keyframe_id=keyframe.id,
+            frame_index=keyframe.frame_index,
+            timestamp_s=keyframe.timestamp_s,
+            world_from_camera=keyframe.world_from_camera.copy(),
+            points_world_m=self.map.points.positions_m[ids].copy(),
+            keypoints_px=keyframe.features.keypoints_px[good].copy(),
+            map_point_ids=ids.astype(np.int64),
+            shared_with_previous=shared,
+            previous_total=previous_total,
+        )
+
+    def _record(self, frame: Frame, camera_from_world: np.ndarray, tracked: bool) -> None:
+        reference = self._reference
+        if reference is None:
+            record = _FrameRecord(frame.index, frame.timestamp_s, -1, inverse(camera_from_world), tracked)
+        else:
+            record = _FrameRecord(frame.index, frame.timestamp_s, reference.id,
+                                  reference.camera_from_world @ inverse(camera_from_world), tracked)
+        self._records.append(record)
+
+    # ------------------------------------------------------------------ results
+    def keyframe_poses(self) -> dict[int, np.ndarray]:
+        """Keyframe id -> ``world_from_camera`` (4, 4) after every correction so far."""
+        return {k.id: k.world_from_camera.copy() for k in self.map.keyframes}
+
+    def finish(self) -> FrontendResult:
+        """Global BA (if configured) and the final trajectories; call once, after the last frame."""
+        if self.config.global_ba and len(self.map.keyframes) > 1:
+            with self._timed("global_ba"):
+                global_bundle_adjustment(self.map, self.K, self.config)
+        poses = []
+        for record in self._records:
+            if record.reference_keyframe < 0:
+                poses.append(record.reference_from_camera)
+            else:
+                poses.append(self.map.keyframes[record.reference_keyframe].world_from_camera @ record.reference_from_camera)
+        keyframes = self.map.keyframes
+        points = self.map.points
+        good = np.flatnonzero(~points.bad[: points.count] & (points.observations[: points.count] > 0))
+        return FrontendResult(
+            trajectory=Trajectory(np.array([r.timestamp_s for r in self._records]), np.stack(poses)) if poses else Trajectory(np.zeros(0), np.zeros((0, 4, 4))),
+            tracked=np.array([r.tracked for r in self._records], bool),
+            keyframe_trajectory=Trajectory(np.array([k.timestamp_s for k in keyframes]),
+                                           np.stack([k.world_from_camera for k in keyframes]) if keyframes else np.zeros((0, 4, 4))),
+            keyframe_poses=self.keyframe_poses(),
+            keyframe_frame_indices={k.id: k.frame_index for k in keyframes},
+            map_points_world_m=points.positions_m[good].copy(),
+            map_point_colours=points.colours[good].copy(),
+            map_point_ids=good,
+            timings_s=dict(self.timings_s),
+            frames_lost=self.frames_lost,
+            frames_relocalised=self.frames_relocalised,
+            loops_closed=self.loops_closed,
+        )

@@ -1,0 +1,249 @@
+"""The sparse map the ORB frontend keeps across frames: keyframes, map points, covisibility.
+
+Map points live in growable arrays indexed by point id (``MapPoints``); a keyframe records, per keypoint, the
+id of the map point it observes (-1 for none), which is the one place observations are stored. Point-centric
+questions ("who sees these points") loop over keyframes, never over points. Bad points are flagged, not
+deleted, and skipped wherever ids are read.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from tambridge.frontend.orb_features import FrameFeatures
+from tambridge.geometry import inverse
+
+
+@dataclasses.dataclass
+class Keyframe:
+    """A keyframe: its features, the map point id per keypoint (N,) int64 (-1 none), bag-of-words vector,
+    covisibility weights (other keyframe id -> shared points) and the map segment it belongs to."""
+
+    id: int
+    frame_index: int
+    timestamp_s: float
+    world_from_camera: np.ndarray
+    features: FrameFeatures
+    point_ids: np.ndarray
+    segment: int
+    bow_words: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
+    bow_weights: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    covisibility: dict[int, int] = dataclasses.field(default_factory=dict)
+
+    @property
+    def camera_from_world(self) -> np.ndarray:
+        return inverse(self.world_from_camera)
+
+    @property
+    def centre_m(self) -> np.ndarray:
+        return self.world_from_camera[:3, 3]
+
+    def best_covisible(self, count: int, min_weight: int = 1) -> list[int]:
+        """Ids of up to ``count`` keyframes sharing the most points with this one (at least ``min_weight``)."""
+        ranked = sorted(((w, k) for k, w in self.covisibility.items() if w >= min_weight), reverse=True)
+        return [k for _, k in ranked[:count]]
+
+
+class MapPoints:
+    """Growable arrays of map point attributes, indexed by point id.
+
+    ``positions_m`` (N, 3) world; ``descriptors`` (N, 32); ``normals`` (N, 3) unit mean viewing direction;
+    ``max_distance_m``/``min_distance_m`` (N,) the scale-invariance range of ORB; ``colours`` (N, 3) uint8;
+    ``observations`` (N,) keyframes that see the point; ``visible``/``found`` (N,) frames where it was in the
+    frustum / matched; ``first_keyframe`` (N,) and ``reference_keyframe`` (N,) ids; ``bad`` (N,) bool.
+    """
+
+    def __init__(self, capacity: int = 4096) -> None:
+        self.count = 0
+        self.positions_m = np.zeros((capacity, 3))
+        self.descriptors = np.zeros((capacity, 32), np.uint8)
+        self.normals = np.zeros((capacity, 3))
+        self.max_distance_m = np.zeros(capacity)
+        self.min_distance_m = np.zeros(capacity)
+        self.colours = np.zeros((capacity, 3), np.uint8)
+        self.observations = np.zeros(capacity, np.int64)
+        self.visible = np.zeros(capacity, np.int64)
+        self.found = np.zeros(capacity, np.int64)
+        self.first_keyframe = np.zeros(capacity, np.int64)
+        self.reference_keyframe = np.zeros(capacity, np.int64)
+        self.bad = np.zeros(capacity, bool)
+
+    _FIELDS = ("positions_m", "descriptors", "normals", "max_distance_m", "min_distance_m", "colours", "observations",
+               "visible", "found", "first_keyframe", "reference_keyframe", "bad")
+
+    def _grow(self, needed: int) -> None:
+        capacity = len(self.bad)
+        if needed <= capacity:
+            return
+        new_capacity = max(needed, 2 * capacity)
+        for name in self._FIELDS:
+            old = getattr(self, name)
+            grown = np.zeros((new_capacity,) + old.shape[1:], old.dtype)
+            grown[: self.count] = old[: self.count]
+            setattr(self, name, grown)
+
+    def add(
+        self,
+        positions_m: np.ndarray,
+        descriptors: np.ndarray,
+        colours: np.ndarray,
+        camera_centre_m: np.ndarray,
+        octaves: np.ndarray,
+        keyframe_id: int,
+        scale_factor: float,
+        n_levels: int,
+    ) -> np.ndarray:
+        """Append points (K, 3) seen from ``camera_centre_m`` at keypoint ``octaves`` (K,); returns their ids (K,)."""
+        k = len(positions_m)
+        self._grow(self.count + k)
+        ids = np.arange(self.count, self.count + k)
+        offsets = positions_m - camera_centre_m
+        distance = np.linalg.norm(offsets, axis=1)
+        self.positions_m[ids] = positions_m
+        self.descriptors[ids] = descriptors
+        self.colours[ids] = colours
+        self.normals[ids] = offsets / np.maximum(distance, 1e-9)[:, None]
+        # ORB-SLAM: a point seen at octave o at distance d is matchable from d*s^o/s^(L-1) to d*s^o.
+        self.max_distance_m[ids] = distance * scale_factor ** octaves
+        self.min_distance_m[ids] = self.max_distance_m[ids] / scale_factor ** (n_levels - 1)
+        self.observations[ids] = 1
+        self.visible[ids] = 1
+        self.found[ids] = 1
+        self.first_keyframe[ids] = keyframe_id
+        self.reference_keyframe[ids] = keyframe_id
+        self.bad[ids] = False
+        self.count += k
+        return ids
+
+    def good(self, ids: np.ndarray) -> np.ndarray:
+        """Mask (K,) of ids that are valid (>= 0) and not bad."""
+        ids = np.asarray(ids)
+        valid = ids >= 0
+        out = np.zeros(len(ids), bool)
+        out[valid] = ~self.bad[ids[valid]]
+        return out
+
+
+class SlamMap:
+    """Keyframes (in insertion order, id = position) and map points, with covisibility bookkeeping."""
+
+    def __init__(self) -> None:
+        self.keyframes: list[Keyframe] = []
+        self.points = MapPoints()
+        # (id_a, id_b, b_from_a measured) loop constraints found so far, kept for later pose graphs.
+        self.loop_edges: list[tuple[int, int, np.ndarray]] = []
+        # (last keyframe before a tracking loss, first keyframe of the new segment, guessed relative pose).
+        self.segment_links: list[tuple[int, int, np.ndarray]] = []
+
+    def good_point_ids(self, keyframe: Keyframe) -> np.ndarray:
+        """Good map point ids observed by a keyframe (K,)."""
+        ids = keyframe.point_ids
+        return ids[self.points.good(ids)]
+
+    def observers(self, point_mask: np.ndarray) -> dict[int, np.ndarray]:
+        """Keyframe id -> keypoint indices whose point is selected by ``point_mask`` (n_points,) bool."""
+        out = {}
+        for keyframe in self.keyframes:
+            ids = keyframe.point_ids
+            valid = ids >= 0
+            hit = np.zeros(len(ids), bool)
+            hit[valid] = point_mask[ids[valid]]
+            if hit.any():
+                out[keyframe.id] = np.flatnonzero(hit)
+        return out
+
+    def update_covisibility(self, keyframe: Keyframe, min_shared: int) -> None:
+        """Recount the points this keyframe shares with every other keyframe; keep pairs with >= ``min_shared``
+        (or the single best pair if none reaches it, so the graph stays connected)."""
+        mask = np.zeros(self.points.count, bool)
+        mask[self.good_point_ids(keyframe)] = True
+        counts = {}
+        for other in self.keyframes:
+            if other.id == keyframe.id:
+                continue
+            ids = other.point_ids[other.point_ids >= 0]
+            shared = int(mask[ids].sum())
+            other.covisibility.pop(keyframe.id, None)
+            if shared > 0:
+                counts[other.id] = shared
+        kept = {k: w for k, w in counts.items() if w >= min_shared}
+        if not kept and counts:
+            best = max(counts, key=counts.get)
+            kept = {best: counts[best]}
+        keyframe.covisibility = kept
+        for other_id, weight in kept.items():
+            self.keyframes[other_id].covisibility[keyframe.id] = weight
+
+    @staticmethod
+    def drop_duplicate_observations(keyframe: Keyframe) -> None:
+        """A keyframe sees a point at most once: keep the first keypoint of each repeated id."""
+        valid = np.flatnonzero(keyframe.point_ids >= 0)
+        _, first = np.unique(keyframe.point_ids[valid], return_index=True)
+        duplicate = np.ones(valid.size, bool)
+        duplicate[first] = False
+        keyframe.point_ids[valid[duplicate]] = -1
+
+    def recount_observations(self) -> None:
+        """Observation count of every point from the keyframes' point ids (after merges and removals)."""
+        all_ids = np.concatenate([k.point_ids[k.point_ids >= 0] for k in self.keyframes]) if self.keyframes else np.zeros(0, np.int64)
+        self.points.observations[: self.points.count] = np.bincount(all_ids, minlength=self.points.count)[: self.points.count]
+
+    def replace_points(self, old_ids: np.ndarray, new_ids: np.ndarray) -> None:
+        """Merge duplicates: every observation of ``old_ids[i]`` becomes one of ``new_ids[i]``; old points go bad.
+
+        A keyframe that ends up seeing the same point at two keypoints keeps the first.
+        """
+        keep = old_ids != new_ids
+        old_ids, new_ids = old_ids[keep], new_ids[keep]
+        if len(old_ids) == 0:
+            return
+        remap = np.arange(self.points.count)
+        remap[old_ids] = new_ids
+        # Follow chains (a -> b -> c) so that every id lands on a point that is not replaced.
+        for _ in range(8):
+            remap = remap[remap]
+        for keyframe in self.keyframes:
+            ids = keyframe.point_ids
+            valid = np.flatnonzero(ids >= 0)
+            if valid.size == 0:
+                continue
+            ids[valid] = remap[ids[valid]]
+            self.drop_duplicate_observations(keyframe)
+        self.points.bad[old_ids] = True
+        self.recount_observations()
+
+    def move_points_with_keyframes(self, world_from_camera_before: np.ndarray) -> None:
+        """After keyframe poses changed, carry each good point with its reference keyframe.
+
+        ``world_from_camera_before`` (K, 4, 4) are the keyframe poses before the change (index = keyframe id).
+        """
+        n = self.points.count
+        if n == 0:
+            return
+        after = np.stack([k.world_from_camera for k in self.keyframes])
+        correction = np.einsum("kij,kjl->kil", after, np.stack([inverse(p) for p in world_from_camera_before]))
+        reference = self.points.reference_keyframe[:n]
+        positions = self.points.positions_m[:n]
+        moved = np.einsum("nij,nj->ni", correction[reference, :3, :3], positions) + correction[reference, :3, 3]
+        self.points.normals[:n] = np.einsum("nij,nj->ni", correction[reference, :3, :3], self.points.normals[:n])
+        self.points.positions_m[:n] = moved
+
+    def local_keyframes(self, reference: Keyframe, count: int) -> list[Keyframe]:
+        """The reference keyframe, its best covisible keyframes and, while fewer than ``count``, theirs (ORB-SLAM's
+        local map: keyframes seen together with the reference, never merely recent ones, so that a revisited
+        place is left to loop closing)."""
+        chosen = [reference.id] + reference.best_covisible(count)
+        for neighbour in list(chosen[1:]):
+            if len(chosen) > count:
+                break
+            chosen += [k for k in self.keyframes[neighbour].best_covisible(count) if k not in chosen][: count + 1 - len(chosen)]
+        return [self.keyframes[i] for i in chosen[: count + 1]]
+
+    def points_of(self, keyframes: list[Keyframe]) -> np.ndarray:
+        """Sorted unique good point ids seen by any of the keyframes."""
+        if not keyframes:
+            return np.zeros(0, np.int64)
+        ids = np.unique(np.concatenate([k.point_ids for k in keyframes]))
+        return ids[self.points.good(ids)]

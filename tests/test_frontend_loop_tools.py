@@ -1,0 +1,60 @@
+"""Place recognition and pose graphs: the bag-of-words vocabulary and database, Open3D's pose-graph conventions."""
+
+import numpy as np
+
+from tambridge.frontend.pose_graph import PoseEdge, optimise_pose_graph
+from tambridge.frontend.vocabulary import DEFAULT_VOCABULARY_PATH, KeyframeDatabase, Vocabulary, bow_score, train_vocabulary
+from tambridge.geometry import exp_se3, inverse
+
+
+def test_shipped_vocabulary_is_small_and_loads():
+    assert DEFAULT_VOCABULARY_PATH.stat().st_size < 1_000_000
+    vocabulary = Vocabulary.load()
+    assert vocabulary.centres.shape == (sum(vocabulary.branching**d for d in range(1, vocabulary.depth + 1)), 32)
+    assert vocabulary.idf.shape == (vocabulary.n_words,) and np.all(vocabulary.idf >= 0)
+
+
+def test_trained_vocabulary_retrieves_the_same_place():
+    rng = np.random.default_rng(0)
+    # Ten "places", each a set of 200 descriptors; a revisit sees the same descriptors with 5% bit noise.
+    places = [rng.integers(0, 256, (200, 32), dtype=np.uint8) for _ in range(10)]
+    vocabulary = train_vocabulary(places, branching=4, depth=3, iterations=5)
+    assert vocabulary.words(places[0]).max() < vocabulary.n_words
+    database = KeyframeDatabase(vocabulary.n_words)
+    for place_id, descriptors in enumerate(places):
+        database.add(place_id, *vocabulary.transform(descriptors))
+    for place_id in (2, 7):
+        noisy = places[place_id] ^ np.packbits(rng.random((200, 256)) < 0.05, axis=1)
+        words, weights = vocabulary.transform(noisy)
+        ids, scores = database.query(words, weights)
+        assert ids[0] == place_id
+        assert scores[0] == bow_score(words, weights, *vocabulary.transform(places[place_id]))
+    words, weights = vocabulary.transform(places[3])
+    assert abs(weights.sum() - 1.0) < 1e-12 and abs(bow_score(words, weights, words, weights) - 1.0) < 1e-12
+
+
+def test_pose_graph_convention_and_loop_correction():
+    rng = np.random.default_rng(1)
+    truth = [np.eye(4)]
+    for _ in range(7):
+        truth.append(truth[-1] @ exp_se3(np.concatenate([rng.normal(0, 0.2, 3), rng.normal(0, 0.1, 3)])))
+    truth = np.stack(truth)
+    # Odometry edges with a small bias (drift), one exact loop edge from the last node back to the first.
+    edges, drifted = [], [np.eye(4)]
+    bias = exp_se3(np.array([0.01, 0.0, 0.0, 0.0, 0.0, 0.005]))
+    for i in range(1, len(truth)):
+        measured = inverse(truth[i]) @ truth[i - 1] @ bias  # target i from source i-1
+        edges.append(PoseEdge(i - 1, i, measured, np.eye(6)))
+        drifted.append(drifted[-1] @ inverse(measured))
+    edges.append(PoseEdge(len(truth) - 1, 0, inverse(truth[0]) @ truth[-1], 100 * np.eye(6)))
+    drifted = np.stack(drifted)
+    optimised, _ = optimise_pose_graph(drifted, edges, reference_node=0)
+    np.testing.assert_allclose(optimised[0], np.eye(4), atol=1e-9)
+    error_before = np.linalg.norm(drifted[-1, :3, 3] - truth[-1, :3, 3])
+    error_after = np.linalg.norm(optimised[-1, :3, 3] - truth[-1, :3, 3])
+    assert error_after < 0.1 * error_before
+    # Without the bias and with every edge exact, a perturbed graph returns to the truth.
+    exact = [PoseEdge(i - 1, i, inverse(truth[i]) @ truth[i - 1], np.eye(6)) for i in range(1, len(truth))]
+    perturbed = np.stack([truth[0]] + [t @ exp_se3(rng.normal(0, 0.02, 6)) for t in truth[1:]])
+    optimised, _ = optimise_pose_graph(perturbed, exact, reference_node=0)
+    np.testing.assert_allclose(optimised, truth, atol=1e-5)

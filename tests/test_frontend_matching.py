@@ -1,0 +1,142 @@
+"""ORB features, descriptor matching and motion-only pose estimation: fast kernels against slow twins, known poses."""
+
+import numpy as np
+import pytest
+
+from tambridge.camera import Camera
+from tambridge.frontend.matching import (
+    build_keypoint_grid,
+    hamming_matrix,
+    hamming_matrix_reference,
+    match_descriptors,
+    match_descriptors_reference,
+    search_by_projection,
+    search_by_projection_reference,
+)
+from tambridge.frontend.orb_features import bucket_keypoints, level_budgets, lift_keypoints
+from tambridge.frontend.pose_estimation import (
+    pose_normal_equations,
+    pose_normal_equations_reference,
+    refine_pose,
+    solve_pnp_ransac,
+)
+from tambridge.frontend.reprojection import chi2_thresholds, project_rgbd, rgbd_observations, row_weights
+from tambridge.geometry import exp_se3, inverse, transform_points
+
+K = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
+
+
+def random_descriptors(rng, n):
+    return rng.integers(0, 256, (n, 32), dtype=np.uint8)
+
+
+def flip_bits(rng, descriptors, probability):
+    noisy = descriptors.copy()
+    flips = np.packbits(rng.random((len(descriptors), 256)) < probability, axis=1)
+    return noisy ^ flips
+
+
+def test_hamming_matrix_matches_reference():
+    rng = np.random.default_rng(0)
+    a, b = random_descriptors(rng, 40), random_descriptors(rng, 55)
+    np.testing.assert_array_equal(hamming_matrix(a, b), hamming_matrix_reference(a, b))
+    assert hamming_matrix(a[:1], a[:1])[0, 0] == 0
+
+
+def test_match_descriptors_matches_reference_and_finds_true_pairs():
+    rng = np.random.default_rng(1)
+    train = random_descriptors(rng, 300)
+    truth = rng.permutation(300)[:200]
+    query = flip_bits(rng, train[truth], 0.05)
+    fast = match_descriptors(query, train)
+    slow = match_descriptors_reference(query, train)
+    order = np.argsort(fast[0])
+    np.testing.assert_array_equal(fast[0][order], slow[0])
+    np.testing.assert_array_equal(fast[1][order], slow[1])
+    assert np.mean(truth[fast[0]] == fast[1]) == 1.0 and len(fast[0]) > 190
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_search_by_projection_matches_reference(seed):
+    rng = np.random.default_rng(seed)
+    n_keypoints, n_points = 400, 250
+    keypoints = rng.uniform([0, 0], [320, 240], (n_keypoints, 2))
+    octaves = rng.integers(0, 4, n_keypoints)
+    descriptors = random_descriptors(rng, n_keypoints)
+    source = rng.integers(0, n_keypoints, n_points)
+    projected = keypoints[source] + rng.normal(0.0, 2.0, (n_points, 2))
+    point_descriptors = flip_bits(rng, descriptors[source], 0.08)
+    predicted = np.clip(octaves[source] + rng.integers(-1, 2, n_points), 0, 3)
+    radius = 6.0 * 1.2 ** predicted
+    taken = rng.random(n_keypoints) < 0.1
+    grid = build_keypoint_grid(keypoints, 320, 240)
+    fast = search_by_projection(projected, predicted, radius, point_descriptors, grid, keypoints, octaves, descriptors, taken)
+    slow = search_by_projection_reference(projected, predicted, radius, point_descriptors, keypoints, octaves, descriptors, taken)
+    np.testing.assert_array_equal(fast[0], slow[0])
+    matched = fast[0] >= 0
+    assert matched.sum() > 0.5 * n_points
+    assert np.mean(fast[0][matched] == source[matched]) > 0.95
+    assert not taken[fast[0][matched]].any()
+    assert len(set(fast[0][matched].tolist())) == matched.sum()
+
+
+def test_bucketing_keeps_the_budget_and_spreads_keypoints():
+    rng = np.random.default_rng(4)
+    # A dense textured blob in one corner with strong responses, weak corners elsewhere.
+    corner = rng.uniform([0, 0], [120, 90], (3000, 2))
+    rest = rng.uniform([0, 0], [640, 480], (1500, 2))
+    points = np.concatenate([corner, rest])
+    responses = np.concatenate([rng.uniform(50, 100, 3000), rng.uniform(1, 10, 1500)])
+    octaves = rng.integers(0, 8, len(points))
+    keep = bucket_keypoints(points, octaves, responses, 640, 480, 1000, 1.2, 8, 32)
+    assert len(keep) == 1000 == level_budgets(1000, 1.2, 8).sum()
+    by_strength = np.argsort(-responses)[:1000]
+    in_corner = lambda idx: np.mean((points[idx, 0] < 120) & (points[idx, 1] < 90))  # noqa: E731
+    assert in_corner(by_strength) > 0.95
+    assert in_corner(keep) < 0.5
+
+
+def test_lift_keypoints_back_projects_with_depth():
+    camera = Camera(320, 240, 300.0, 300.0, 160.0, 120.0)
+    depth = np.full((240, 320), 2.0, np.float32)
+    depth[100, 50] = 0.0
+    keypoints = np.array([[160.0, 120.0], [310.0, 20.0], [50.0, 100.0]])
+    features = lift_keypoints(keypoints, np.zeros(3, np.int32), np.zeros((3, 32), np.uint8),
+                              np.zeros((240, 320, 3), np.uint8), depth, camera, 0.1, 8.0)
+    np.testing.assert_allclose(features.points_camera_m[0], [0.0, 0.0, 2.0])
+    np.testing.assert_allclose(features.points_camera_m[1], [(310 - 160) / 300 * 2, (20 - 120) / 300 * 2, 2.0])
+    assert features.depth_m[2] == 0.0 and not features.has_depth[2]
+
+
+def _scene(rng, n=300, outliers=0):
+    camera_from_world = exp_se3(np.array([0.1, -0.05, 0.2, 0.05, 0.1, -0.02]))
+    points_camera = rng.uniform([-1.5, -1.0, 1.0], [1.5, 1.0, 4.0], (n, 3))
+    points_world = transform_points(inverse(camera_from_world), points_camera)
+    pixels = project_rgbd(points_camera, K)[:, :2] + rng.normal(0.0, 0.3, (n, 2))
+    pixels[:outliers] += rng.uniform(20, 60, (outliers, 2))
+    depth = np.where(rng.random(n) < 0.7, points_camera[:, 2] * (1 + rng.normal(0, 0.002, n)), 0.0)
+    return camera_from_world, points_world, rgbd_observations(pixels, depth)
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_pose_normal_equations_match_reference(robust):
+    rng = np.random.default_rng(5)
+    camera_from_world, points_world, observations = _scene(rng, outliers=30)
+    weights = row_weights(observations, rng.uniform(0.5, 1.0, len(points_world)), 0.003)
+    active = rng.random(len(points_world)) < 0.8
+    guess = exp_se3(rng.normal(0, 0.02, 6)) @ camera_from_world
+    fast = pose_normal_equations(guess, points_world, observations, weights, chi2_thresholds(weights), active, robust, K)
+    slow = pose_normal_equations_reference(guess, points_world, observations, weights, chi2_thresholds(weights), active, robust, K)
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+
+
+def test_pnp_then_refinement_recovers_the_pose_and_rejects_outliers():
+    rng = np.random.default_rng(6)
+    camera_from_world, points_world, observations = _scene(rng, outliers=40)
+    guess = exp_se3(rng.normal(0, 0.05, 6)) @ camera_from_world
+    pnp_pose, pnp_inliers = solve_pnp_ransac(points_world, observations[:, :2], K, guess, 3.0, 100)
+    assert pnp_pose is not None and pnp_inliers[40:].mean() > 0.9
+    refined, inliers = refine_pose(pnp_pose, points_world, observations, np.ones(len(points_world)), K, 0.003)
+    assert not inliers[:40].any() and inliers[40:].mean() > 0.9
+    assert np.linalg.norm(inverse(refined)[:3, 3] - inverse(camera_from_world)[:3, 3]) < 0.005

@@ -1,0 +1,125 @@
+"""The ORB RGB-D frontend end to end on synthetic sequences: accuracy, keyframe events, tracking loss, loops."""
+
+import logging
+
+import numpy as np
+import pytest
+
+from tambridge.evaluation.trajectory import ate_rmse_m
+from tambridge.frontend.orb_frontend import OrbFrontend
+from tambridge.frontend.types import OrbFrontendConfig
+from tambridge.geometry import inverse, look_at
+from tambridge.io.synthetic import default_camera, make_room_scene, render
+from tambridge.io.tum import Frame, open_sequence
+from tambridge.trajectory import Trajectory
+
+# 160x120 leaves little room for ORB's pyramid and border: fewer features, four levels, a narrow border.
+# The synthetic depth is exact up to 1/5000 m steps, so depth residuals get the sensor's own noise.
+SMALL_IMAGE = dict(n_features=500, n_levels=4, edge_threshold_px=10, grid_cell_px=16, depth_noise_per_m=0.003)
+
+
+@pytest.fixture(scope="module")
+def sequence(synthetic_sequence_dir):
+    return open_sequence(synthetic_sequence_dir)
+
+
+@pytest.fixture(scope="module")
+def tracked(sequence):
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE))
+    results = [frontend.track(frame) for frame in sequence]
+    return frontend, results, frontend.finish()
+
+
+def test_ate_on_synthetic_loop(sequence, tracked):
+    _, results, final = tracked
+    assert all(r.tracked for r in results)
+    assert final.frames_lost == 0
+    assert len(final.trajectory) == len(sequence)
+    # Measured 1.0 cm (30 frames, 160x120, noise-free); 2 cm leaves margin for platform differences.
+    assert ate_rmse_m(final.trajectory, sequence.ground_truth) < 0.02
+    assert set(final.timings_s) == {"features", "matching", "pnp", "local_ba", "loop", "global_ba"}
+    assert all(v >= 0 for v in final.timings_s.values())
+
+
+def test_keyframe_events_are_consistent(tracked):
+    frontend, results, final = tracked
+    events = [r.keyframe for r in results if r.is_keyframe]
+    assert [e.keyframe_id for e in events] == list(range(len(events)))
+    assert set(final.keyframe_poses) == {e.keyframe_id for e in events}
+    for event in events[1:]:
+        m = len(event.map_point_ids)
+        assert event.points_world_m.shape == (m, 3) and event.keypoints_px.shape == (m, 2)
+        assert 0 <= event.shared_with_previous <= event.previous_total
+        assert event.shared_with_previous > 0
+    # The matched map points project near their keypoints at the keyframe's pose.
+    event = events[-1]
+    pose = frontend.keyframe_poses()[event.keyframe_id]
+    points_camera = (event.points_world_m - pose[:3, 3]) @ pose[:3, :3]
+    pixels = points_camera[:, :2] / points_camera[:, 2:] * frontend.camera.fx + [frontend.camera.cx, frontend.camera.cy]
+    assert np.median(np.linalg.norm(pixels - event.keypoints_px, axis=1)) < 2.0
+    # Non-keyframes are re-anchored to their reference keyframe: keyframes sit exactly on their poses.
+    for keyframe_id, frame_index in final.keyframe_frame_indices.items():
+        np.testing.assert_allclose(final.trajectory.world_from_camera[frame_index], final.keyframe_poses[keyframe_id], atol=1e-9)
+    assert len(final.map_points_world_m) == len(final.map_point_colours) == len(final.map_point_ids) > 100
+
+
+def test_blank_frame_is_reported_and_tracking_continues(sequence, caplog):
+    frames = [sequence[i] for i in range(len(sequence))]
+    blank_at = 15
+    blank = Frame(index=blank_at, timestamp_s=(frames[14].timestamp_s + frames[15].timestamp_s) / 2,
+                  rgb=np.zeros_like(frames[0].rgb), depth_m=np.zeros_like(frames[0].depth_m))
+    stream = frames[:blank_at] + [blank] + frames[blank_at:]
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE))
+    with caplog.at_level(logging.WARNING, logger="tambridge.frontend"):
+        results = [frontend.track(frame) for frame in stream]
+    final = frontend.finish()
+    assert not results[blank_at].tracked
+    assert all(r.tracked for i, r in enumerate(results) if i != blank_at)
+    assert final.frames_lost == 1 and final.frames_relocalised == 1
+    assert any("tracking lost" in record.getMessage() and record.levelno == logging.WARNING for record in caplog.records)
+    keep = np.flatnonzero(final.tracked)
+    estimate = Trajectory(final.trajectory.timestamps_s[keep], final.trajectory.world_from_camera[keep])
+    assert ate_rmse_m(estimate, sequence.ground_truth) < 0.03
+
+
+def _panorama(frame_count: int, seed: int) -> tuple[list[Frame], np.ndarray, object]:
+    """A camera turning 380 degrees in place in the synthetic room (the end sees the start again), with Gaussian
+    colour noise (sigma 0.03) and Kinect-like depth noise (sigma 0.003 z^2), 240x180."""
+    scene = make_room_scene(0)
+    camera = default_camera(240, 180)
+    rng = np.random.default_rng(seed)
+    frames, poses = [], []
+    for index in range(frame_count):
+        yaw = np.deg2rad(380.0) * index / (frame_count - 1)
+        eye = np.array([-0.5, 0.0, 1.4])
+        poses.append(look_at(eye, eye + np.array([np.cos(yaw), np.sin(yaw), -0.3])))
+        colour, depth_m = render(scene, camera, poses[-1])
+        colour = np.clip(colour + rng.normal(0.0, 0.03, colour.shape), 0.0, 1.0)
+        depth_m = (depth_m + rng.normal(0.0, 1.0, depth_m.shape) * 0.003 * depth_m**2).astype(np.float32)
+        frames.append(Frame(index, index / 30.0, (colour * 255 + 0.5).astype(np.uint8), depth_m))
+    return frames, np.stack(poses), camera
+
+
+def _end_drift(frames, ground_truth, camera, loop_closure: bool) -> tuple[float, float, int]:
+    config = OrbFrontendConfig(n_features=800, n_levels=5, edge_threshold_px=12, grid_cell_px=20, depth_noise_per_m=0.003,
+                               loop_closure=loop_closure, global_ba=loop_closure)
+    frontend = OrbFrontend(camera, config)
+    for frame in frames:
+        frontend.track(frame)
+    final = frontend.finish()
+    estimate = final.trajectory.world_from_camera
+    error = inverse(inverse(ground_truth[0]) @ ground_truth[-1]) @ (inverse(estimate[0]) @ estimate[-1])
+    angle_deg = np.degrees(np.arccos(np.clip((np.trace(error[:3, :3]) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(error[:3, 3])), float(angle_deg), final.loops_closed
+
+
+def test_loop_closure_cuts_end_point_drift_in_half():
+    frames, ground_truth, camera = _panorama(48, seed=2)
+    drift_open, angle_open, _ = _end_drift(frames, ground_truth, camera, loop_closure=False)
+    drift_closed, angle_closed, loops = _end_drift(frames, ground_truth, camera, loop_closure=True)
+    # Measured: 7.7 cm / 0.9 degrees without loop closure, 0.9 cm / 0.16 degrees with it. Other noise seeds:
+    # 8.3 -> 3.6 cm (1.6 -> 0.8 degrees) and 4.6 -> 1.5 cm (1.3 -> 0.3 degrees).
+    assert loops >= 1
+    assert drift_open > 0.01
+    assert drift_closed < 0.5 * drift_open
+    assert angle_closed < 0.5 * angle_open
