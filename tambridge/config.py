@@ -32,7 +32,7 @@ class InputConfig:
 class FrontendConfig:
     """Tracking frontend: ``orb`` (default), ``open3d`` (keyframes + pose graph) or ``open3d_f2f`` (frame to frame)."""
 
-    kind: str = "open3d_f2f"
+    kind: str = "orb"
     loop_closure: bool = True
     global_ba: bool = True
     odometry_max_depth_m: float = 4.0
