@@ -14,8 +14,9 @@ from tambridge.io.tum import Frame, open_sequence
 from tambridge.trajectory import Trajectory
 
 # 160x120 leaves little room for ORB's pyramid and border: fewer features, four levels, a narrow border.
-# The synthetic depth is exact up to 1/5000 m steps, so depth residuals get the sensor's own noise.
-SMALL_IMAGE = dict(n_features=500, n_levels=4, edge_threshold_px=10, grid_cell_px=16, depth_noise_per_m=0.003)
+# The synthetic depth is registered and exact up to 1/5000 m steps: depth residuals on, with a small noise.
+SMALL_IMAGE = dict(n_features=500, n_levels=4, edge_threshold_px=10, grid_cell_px=16, depth_residuals=True,
+                   depth_noise_per_m=0.003)
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +102,7 @@ def _panorama(frame_count: int, seed: int) -> tuple[list[Frame], np.ndarray, obj
 
 
 def _end_drift(frames, ground_truth, camera, loop_closure: bool) -> tuple[float, float, int]:
-    config = OrbFrontendConfig(n_features=800, n_levels=5, edge_threshold_px=12, grid_cell_px=20, depth_noise_per_m=0.003,
+    config = OrbFrontendConfig(n_features=800, n_levels=5, edge_threshold_px=12, grid_cell_px=20, depth_residuals=True, depth_noise_per_m=0.003,
                                loop_closure=loop_closure, global_ba=loop_closure)
     frontend = OrbFrontend(camera, config)
     for frame in frames:

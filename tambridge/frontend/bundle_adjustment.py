@@ -15,6 +15,7 @@ import dataclasses
 import numba
 import numpy as np
 import scipy.linalg
+from threadpoolctl import ThreadpoolController
 
 from tambridge.frontend.reprojection import (
     chi2_thresholds,
@@ -28,6 +29,9 @@ from tambridge.frontend.reprojection import (
 from tambridge.geometry import exp_se3
 
 MIN_DEPTH_M = 1e-3
+# Once open3d or pycolmap is loaded (their OpenMP runtime), multi-threaded OpenBLAS factorisations run
+# hundreds of times slower on a 2-core machine (threads spin against each other); one thread is fast.
+_THREADPOOLS = ThreadpoolController()
 
 
 @dataclasses.dataclass
@@ -325,10 +329,11 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
             reduced, rhs, h_pp_inverse = _reduced_system(h_cc, b_c, h_pp, b_p, h_cp, damping,
                                                           problem.observation_point, obs_variable, point_start, order)
             if n_variable:
-                try:
-                    delta_cameras = scipy.linalg.cho_solve(scipy.linalg.cho_factor(reduced), rhs).reshape(-1, 6)
-                except (np.linalg.LinAlgError, ValueError):
-                    delta_cameras = np.linalg.lstsq(reduced, rhs, rcond=None)[0].reshape(-1, 6)
+                with _THREADPOOLS.limit(limits=1, user_api="blas"):
+                    try:
+                        delta_cameras = scipy.linalg.cho_solve(scipy.linalg.cho_factor(reduced), rhs).reshape(-1, 6)
+                    except (np.linalg.LinAlgError, ValueError):
+                        delta_cameras = np.linalg.lstsq(reduced, rhs, rcond=None)[0].reshape(-1, 6)
             else:
                 delta_cameras = np.zeros((0, 6))
             delta_points = _back_substitute(delta_cameras, h_pp_inverse, b_p, h_cp, problem.observation_point, obs_variable)
