@@ -87,7 +87,7 @@ class BundleSolution:
     outliers: np.ndarray
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _observation_residual(rotation, translation, point, observation, fx, fy, cx, cy):
     """Camera-frame point and residual (predicted - observed) of one observation."""
     x = rotation[0, 0] * point[0] + rotation[0, 1] * point[1] + rotation[0, 2] * point[2] + translation[0]
@@ -100,7 +100,7 @@ def _observation_residual(rotation, translation, point, observation, fx, fy, cx,
     return x, y, z, r0, r1, r2
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _evaluate_kernel(rotations, translations, points, obs_camera, obs_point, observations, weights, thresholds, robust, fx, fy, cx, cy):
     cost = 0.0
     chi2 = np.empty(obs_camera.shape[0])
@@ -119,7 +119,7 @@ def _evaluate_kernel(rotations, translations, points, obs_camera, obs_point, obs
     return 0.5 * cost, chi2
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _linearise_kernel(rotations, translations, points, obs_camera, obs_point, observations, weights, thresholds, robust,
                       variable_index, n_variable, fx, fy, cx, cy):
     n_obs, n_points = obs_camera.shape[0], points.shape[0]
@@ -202,7 +202,7 @@ def linearise_reference(problem: "BundleProblem", weights: np.ndarray, threshold
     return h_cc, b_c, h_pp, b_p, h_cp
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _reduced_system(h_cc, b_c, h_pp, b_p, h_cp, damping, obs_point, obs_variable, point_start, order):
     """Damped Schur complement: ``(S (6V, 6V), rhs (6V,), inverse damped H_pp (P, 3, 3))``."""
     n_variable, n_points = h_cc.shape[0], h_pp.shape[0]
@@ -256,7 +256,7 @@ def _reduced_system(h_cc, b_c, h_pp, b_p, h_cp, damping, obs_point, obs_variable
     return reduced, rhs, h_pp_inverse
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _back_substitute(delta_cameras, h_pp_inverse, b_p, h_cp, obs_point, obs_variable):
     """Point steps ``H_pp^-1 (b_p - sum_o H_cp_o^T delta_c)`` (P, 3)."""
     rhs = b_p.copy()

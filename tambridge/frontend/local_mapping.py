@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager, nullcontext
+
 import numpy as np
 
 from tambridge.camera import Camera
@@ -110,45 +112,45 @@ def adjust_bundle(
     K: np.ndarray,
     config: OrbFrontendConfig,
     iterations: int,
+    lock: AbstractContextManager = nullcontext(),
 ) -> int:
     """BA over the ``variable`` keyframes (minus ``fixed_ids``) and the points ``point_ids``; every other keyframe
     seeing those points joins as a fixed camera. Runs half the iterations, drops the outlier observations
     (chi2 beyond the 95% quantile) from their keyframes, then runs the rest. Returns the observations dropped.
+
+    The problem is built and the result written back while holding ``lock``; the solve runs without it, so
+    tracking can go on meanwhile.
     """
-    points = slam_map.points
-    mask = np.zeros(points.count, bool)
-    mask[point_ids] = True
-    seen = slam_map.observers(mask)
-    variable_ids = {k.id for k in variable} - fixed_ids
-    cameras = sorted(seen)
-    if not variable_ids & set(cameras):
-        return 0
-    camera_index = {kf_id: i for i, kf_id in enumerate(cameras)}
-    point_index = np.full(points.count, -1, np.int64)
-    point_index[point_ids] = np.arange(len(point_ids))
-    obs_camera, obs_keypoint = [], []
-    for kf_id in cameras:
-        obs_camera.append(np.full(len(seen[kf_id]), camera_index[kf_id]))
-        obs_keypoint.append(seen[kf_id])
-    obs_camera = np.concatenate(obs_camera)
-    obs_keypoint = np.concatenate(obs_keypoint)
-    keyframes = [slam_map.keyframes[i] for i in cameras]
-    obs_kf = np.array(cameras)[obs_camera]
-    keypoints = np.concatenate([keyframes[i].features.keypoints_px[seen[kf]] for i, kf in enumerate(cameras)])
-    depth = np.concatenate([keyframes[i].features.depth_m[seen[kf]] for i, kf in enumerate(cameras)])
-    octaves = np.concatenate([keyframes[i].features.octaves[seen[kf]] for i, kf in enumerate(cameras)])
-    obs_point_id = np.concatenate([keyframes[i].point_ids[seen[kf]] for i, kf in enumerate(cameras)])
-    problem = BundleProblem(
-        camera_from_world=np.stack([k.camera_from_world for k in keyframes]),
-        points_world=points.positions_m[point_ids].copy(),
-        observation_camera=obs_camera,
-        observation_point=point_index[obs_point_id],
-        observations=rgbd_observations(keypoints, depth),
-        inv_sigma2=_inv_sigma2(octaves, config.scale_factor),
-        fixed_cameras=np.array([kf_id not in variable_ids for kf_id in cameras]),
-        K=K,
-        depth_noise_per_m=config.depth_noise,
-    )
+    with lock:
+        points = slam_map.points
+        mask = np.zeros(points.count, bool)
+        mask[point_ids] = True
+        seen = slam_map.observers(mask)
+        variable_ids = {k.id for k in variable} - fixed_ids
+        cameras = sorted(seen)
+        if not variable_ids & set(cameras):
+            return 0
+        point_index = np.full(points.count, -1, np.int64)
+        point_index[point_ids] = np.arange(len(point_ids))
+        keyframes = [slam_map.keyframes[i] for i in cameras]
+        obs_camera = np.concatenate([np.full(len(seen[kf_id]), i) for i, kf_id in enumerate(cameras)])
+        obs_keypoint = np.concatenate([seen[kf_id] for kf_id in cameras])
+        obs_kf = np.array(cameras)[obs_camera]
+        keypoints = np.concatenate([k.features.keypoints_px[seen[k.id]] for k in keyframes])
+        depth = np.concatenate([k.features.depth_m[seen[k.id]] for k in keyframes])
+        octaves = np.concatenate([k.features.octaves[seen[k.id]] for k in keyframes])
+        obs_point_id = np.concatenate([k.point_ids[seen[k.id]] for k in keyframes])
+        problem = BundleProblem(
+            camera_from_world=np.stack([k.camera_from_world for k in keyframes]),
+            points_world=points.positions_m[point_ids].copy(),
+            observation_camera=obs_camera,
+            observation_point=point_index[obs_point_id],
+            observations=rgbd_observations(keypoints, depth),
+            inv_sigma2=_inv_sigma2(octaves, config.scale_factor),
+            fixed_cameras=np.array([kf_id not in variable_ids for kf_id in cameras]),
+            K=K,
+            depth_noise_per_m=config.depth_noise,
+        )
     options = BundleOptions(iterations=max(1, iterations // 2))
     solution = solve_bundle_adjustment(problem, options)
     outliers = solution.outliers
@@ -159,25 +161,33 @@ def adjust_bundle(
             problem.observations[keep], problem.inv_sigma2[keep], problem.fixed_cameras, K, config.depth_noise,
         )
         solution = solve_bundle_adjustment(problem, BundleOptions(iterations=max(1, iterations - options.iterations)))
-        for kf_id, keypoint in zip(obs_kf[outliers], obs_keypoint[outliers]):
-            slam_map.keyframes[kf_id].point_ids[keypoint] = -1
-    for i, keyframe in enumerate(keyframes):
-        if keyframe.id in variable_ids:
-            keyframe.world_from_camera = inverse(solution.camera_from_world[i])
-    points.positions_m[point_ids] = solution.points_world
-    if outliers.any():
-        slam_map.recount_observations()
+    with lock:
+        for kf_id, keypoint, point_id in zip(obs_kf[outliers], obs_keypoint[outliers], obs_point_id[outliers]):
+            keyframe = slam_map.keyframes[kf_id]
+            if keyframe.point_ids[keypoint] == point_id:
+                keyframe.point_ids[keypoint] = -1
+        for i, keyframe in enumerate(keyframes):
+            if keyframe.id in variable_ids:
+                keyframe.world_from_camera = inverse(solution.camera_from_world[i])
+        points.positions_m[point_ids] = solution.points_world
+        if outliers.any():
+            slam_map.recount_observations()
     return int(outliers.sum())
 
 
-def local_bundle_adjustment(slam_map: SlamMap, keyframe: Keyframe, K: np.ndarray, config: OrbFrontendConfig) -> int:
+def local_bundle_adjustment(
+    slam_map: SlamMap, keyframe: Keyframe, K: np.ndarray, config: OrbFrontendConfig, lock: AbstractContextManager = nullcontext()
+) -> int:
     """Local BA: the new keyframe and its best covisible keyframes move; the first keyframe of a segment stays."""
-    local = [keyframe] + [slam_map.keyframes[i] for i in keyframe.best_covisible(config.local_ba_keyframes - 1)]
-    local = [k for k in local if k.segment == keyframe.segment]
-    fixed = {k.id for k in local if k.id == _segment_start(slam_map, k.segment)}
-    dropped = adjust_bundle(slam_map, local, slam_map.points_of(local), fixed, K, config, config.local_ba_iterations)
-    for k in local:
-        slam_map.update_covisibility(k, config.covisibility_min_shared)
+    with lock:
+        local = [keyframe] + [slam_map.keyframes[i] for i in keyframe.best_covisible(config.local_ba_keyframes - 1)]
+        local = [k for k in local if k.segment == keyframe.segment]
+        fixed = {k.id for k in local if k.id == _segment_start(slam_map, k.segment)}
+        point_ids = slam_map.points_of(local)
+    dropped = adjust_bundle(slam_map, local, point_ids, fixed, K, config, config.local_ba_iterations, lock)
+    with lock:
+        for k in local:
+            slam_map.update_covisibility(k, config.covisibility_min_shared)
     return dropped
 
 

@@ -34,7 +34,7 @@ def as_words(descriptors: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(descriptors).view(np.uint64)
 
 
-@numba.njit(cache=True, parallel=False)
+@numba.njit(cache=True, nogil=True)
 def _hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out = np.empty((a.shape[0], b.shape[0]), np.int32)
     for i in range(a.shape[0]):
@@ -78,7 +78,7 @@ def build_keypoint_grid(keypoints_px: np.ndarray, width: int, height: int, cell_
     return KeypointGrid(cell_px, int(columns), int(rows), start, order)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _search_by_projection(
     projected_px, predicted_octaves, radius_px, point_words,
     grid_start, grid_order, cell_px, columns, rows,
@@ -189,7 +189,7 @@ def search_by_projection_reference(
     return match, distance
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _nearest_two(query_words, train_words):
     n = query_words.shape[0]
     best_index = np.full(n, -1, np.int64)

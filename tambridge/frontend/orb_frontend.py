@@ -9,13 +9,21 @@ relocalisation against the keyframes; failing that it is reported (warning) and,
 map segment starts, to be joined to the old one by the next loop closure. ``finish()`` runs global BA and
 re-anchors every frame to its reference keyframe.
 
-Everything runs in the caller's thread, so the timings in ``timings_s`` add up to the time spent in ``track``.
+With ``mapping_thread`` (the default) the keyframe work (point fusion, local BA, loop closing) runs in a
+background thread, as ORB-SLAM's local-mapping and loop-closing threads do, while ``track`` goes on with the
+next frames; a new keyframe then waits while that thread is busy (ORB-SLAM's rule). One lock guards the map:
+tracking holds it while it reads the local map, the mapping thread while it edits the map or reads BA inputs,
+not while it solves. Frame poses are kept relative to their reference keyframe, so corrections made in the
+background carry over to tracking. Without the thread everything runs inside ``track`` and results are
+deterministic. ``timings_s`` sums wall time per stage over both threads.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import queue
+import threading
 import time
 from contextlib import contextmanager
 
@@ -87,13 +95,20 @@ class OrbFrontend:
         self.loops_closed = 0
         self._world_from_first = np.eye(4) if world_from_first_camera is None else np.asarray(world_from_first_camera, float)
         self._records: list[_FrameRecord] = []
-        self._camera_from_world_last: np.ndarray | None = None
+        # The last frame's pose, relative to its reference keyframe so that it follows keyframe corrections.
+        self._last: _FrameRecord | None = None
         self._motion = np.eye(4)  # current_from_previous camera motion: the constant-velocity prior
         self._reference: Keyframe | None = None
         self._frames_since_keyframe = 0
         self._lost_streak = 0
         self._segment = -1
         self._keyframes_since_loop = 1 << 30
+        self._loop_closed_unreported = False
+        self._lock = threading.RLock()
+        self._timing_lock = threading.Lock()
+        self._jobs: queue.Queue[Keyframe | None] = queue.Queue()
+        self._worker: threading.Thread | None = None
+        self._worker_error: BaseException | None = None
 
     @contextmanager
     def _timed(self, stage: str):
@@ -101,17 +116,36 @@ class OrbFrontend:
         try:
             yield
         finally:
-            self.timings_s[stage] += time.perf_counter() - start
+            with self._timing_lock:
+                self.timings_s[stage] += time.perf_counter() - start
+
+    def _camera_from_world_last(self) -> np.ndarray | None:
+        last = self._last
+        if last is None:
+            return None
+        if last.reference_keyframe < 0:
+            return inverse(last.reference_from_camera)
+        reference = self.map.keyframes[last.reference_keyframe]
+        return inverse(reference.world_from_camera @ last.reference_from_camera)
 
     # ------------------------------------------------------------------ per frame
     def track(self, frame: Frame) -> TrackResult:
         """Localise one frame (frames must come in order); see :class:`~tambridge.frontend.types.TrackResult`."""
+        self._raise_worker_error()
         with self._timed("features"):
             features = self.extractor.extract(frame.rgb, frame.depth_m)
+        with self._lock:
+            result = self._track_features(frame, features)
+            if self._loop_closed_unreported:
+                result.loop_closed, self._loop_closed_unreported = True, False
+            return result
+
+    def _track_features(self, frame: Frame, features: FrameFeatures) -> TrackResult:
         if self._reference is None:
             started = self._start_segment(frame, features)
             return started if started is not None else self._lost(frame, features, "no map to track against")
-        predicted = self._motion @ self._camera_from_world_last
+        camera_from_world_last = self._camera_from_world_last()
+        predicted = self._motion @ camera_from_world_last
         grid = build_keypoint_grid(features.keypoints_px, self.camera.width, self.camera.height)
         radius_scale = 2.0 if self._lost_streak else 1.0
         fix, in_view = self._track_local_map(features, grid, predicted, radius_scale)
@@ -134,20 +168,19 @@ class OrbFrontend:
                         " (relocalised against keyframes)" if relocalised else "")
         if not self._lost_streak:
             # After lost frames the last pose was a prediction: keep the velocity from before the loss.
-            self._motion = fix.camera_from_world @ inverse(self._camera_from_world_last)
+            self._motion = fix.camera_from_world @ inverse(camera_from_world_last)
         self._lost_streak = 0
         points = self.map.points
         points.visible[in_view] += 1
         points.found[fix.point_ids] += 1
         self._reference = self._best_reference(fix)
         self._frames_since_keyframe += 1
-        keyframe_event, loop_closed = None, False
+        keyframe_event = None
         camera_from_world = fix.camera_from_world
         if self._need_keyframe(features, fix):
-            keyframe, loop_closed = self._insert_keyframe(frame, features, fix)
+            keyframe = self._insert_keyframe(frame, features, fix)
             keyframe_event = self._keyframe_event(keyframe)
-            camera_from_world = keyframe.camera_from_world
-        self._camera_from_world_last = camera_from_world
+            camera_from_world = keyframe.camera_from_world  # after local BA when mapping runs inline
         self._record(frame, camera_from_world, tracked=True)
         return TrackResult(
             frame_index=frame.index,
@@ -157,7 +190,6 @@ class OrbFrontend:
             is_keyframe=keyframe_event is not None,
             inlier_count=fix.inlier_count,
             relocalised=relocalised,
-            loop_closed=loop_closed,
             keyframe=keyframe_event,
         )
 
@@ -212,11 +244,11 @@ class OrbFrontend:
         """Count and report a frame that could not be localised; its pose is the constant-velocity prediction."""
         self.frames_lost += 1
         self._lost_streak += 1
-        if self._camera_from_world_last is None:
+        camera_from_world_last = self._camera_from_world_last()
+        if camera_from_world_last is None:
             predicted = inverse(self._world_from_first)
         else:
-            predicted = self._motion @ self._camera_from_world_last
-            self._camera_from_world_last = predicted
+            predicted = self._motion @ camera_from_world_last
         logger.warning(
             "frame %d (t=%.6f): tracking lost (%s; %d keypoints); its pose is the constant-velocity prediction%s",
             frame.index, frame.timestamp_s, reason, len(features),
@@ -230,13 +262,14 @@ class OrbFrontend:
         if int(features.has_depth.sum()) < MIN_KEYPOINTS_WITH_DEPTH_TO_START:
             return None
         previous = self.map.keyframes[-1] if self.map.keyframes else None
-        if self._camera_from_world_last is None:
+        camera_from_world_last = self._camera_from_world_last()
+        if camera_from_world_last is None:
             camera_from_world = inverse(self._world_from_first)
         else:
-            camera_from_world = self._motion @ self._camera_from_world_last
+            camera_from_world = self._motion @ camera_from_world_last
         self._segment += 1
         fix = PoseFix(camera_from_world, np.zeros(0, np.int64), np.zeros(0, np.int64))
-        keyframe, _ = self._insert_keyframe(frame, features, fix, run_mapping=False)
+        keyframe = self._insert_keyframe(frame, features, fix, run_mapping=False)
         if previous is not None:
             self.map.segment_links.append((previous.id, keyframe.id, camera_from_world @ previous.world_from_camera))
             logger.warning(
@@ -246,7 +279,6 @@ class OrbFrontend:
             )
         self._lost_streak = 0
         self._motion = np.eye(4)
-        self._camera_from_world_last = camera_from_world
         self._record(frame, camera_from_world, tracked=previous is None)
         return TrackResult(frame.index, frame.timestamp_s, inverse(camera_from_world), tracked=previous is None,
                            is_keyframe=True, inlier_count=0, keyframe=self._keyframe_event(keyframe))
@@ -261,7 +293,8 @@ class OrbFrontend:
         return best if best.segment == self._segment else self._reference
 
     def _need_keyframe(self, features: FrameFeatures, fix: PoseFix) -> bool:
-        """ORB-SLAM2's NeedNewKeyFrame for RGB-D (local mapping is never busy here)."""
+        """ORB-SLAM2's NeedNewKeyFrame for RGB-D: a keyframe waits while the mapping thread is busy, unless
+        tracking is weakening and fewer than three keyframes are queued."""
         config = self.config
         points = self.map.points
         reference_ids = self.map.good_point_ids(self._reference)
@@ -274,15 +307,16 @@ class OrbFrontend:
         need_close = int((close & matched).sum()) < 100 and int((close & ~matched).sum()) > 70
         ratio = 0.4 if len(self.map.keyframes) < 2 else config.keyframe_tracked_ratio
         inliers = fix.inlier_count
+        queued = self._jobs.unfinished_tasks
         c1a = self._frames_since_keyframe >= config.keyframe_max_frames
-        c1b = self._frames_since_keyframe >= config.keyframe_min_frames
+        c1b = self._frames_since_keyframe >= config.keyframe_min_frames and queued == 0
         c1c = inliers < 0.25 * reference_tracked or need_close
         c2 = (inliers < ratio * reference_tracked or need_close) and inliers > 15
-        return (c1a or c1b or c1c) and c2
+        return (c1a or c1b or c1c) and c2 and queued < 3
 
-    def _insert_keyframe(self, frame: Frame, features: FrameFeatures, fix: PoseFix, run_mapping: bool = True) -> tuple[Keyframe, bool]:
-        """Make the frame a keyframe, extend the map, run local BA and loop closing; returns (keyframe, loop closed)."""
-        config = self.config
+    def _insert_keyframe(self, frame: Frame, features: FrameFeatures, fix: PoseFix, run_mapping: bool = True) -> Keyframe:
+        """Make the frame a keyframe with its tracked points and new points from depth, then hand it to local
+        mapping (the thread, or inline). Called with the map lock held."""
         keyframe = Keyframe(
             id=len(self.map.keyframes),
             frame_index=frame.index,
@@ -295,31 +329,66 @@ class OrbFrontend:
         keyframe.point_ids[fix.keypoint_indices] = fix.point_ids
         self.map.keyframes.append(keyframe)
         self.map.points.observations[fix.point_ids] += 1
-        create_points_from_depth(self.map, keyframe, config)
-        self.map.update_covisibility(keyframe, config.covisibility_min_shared)
+        create_points_from_depth(self.map, keyframe, self.config)
+        self.map.update_covisibility(keyframe, self.config.covisibility_min_shared)
+        self._reference = keyframe
+        self._frames_since_keyframe = 0
+        if not self.config.mapping_thread:
+            self._map_keyframe(keyframe, run_mapping)
+        elif run_mapping:
+            self._start_worker()
+            self._jobs.put(keyframe)
+        else:
+            self._map_keyframe(keyframe, run_mapping=False)
+        return keyframe
+
+    def _map_keyframe(self, keyframe: Keyframe, run_mapping: bool = True) -> None:
+        """Local mapping and loop closing for a new keyframe (ORB-SLAM's LocalMapping and LoopClosing)."""
+        config = self.config
         with self._timed("loop"):
-            keyframe.bow_words, keyframe.bow_weights = self.vocabulary.transform(features.descriptors)
-        loop_closed = False
+            words, weights = self.vocabulary.transform(keyframe.features.descriptors)
+        with self._lock:
+            keyframe.bow_words, keyframe.bow_weights = words, weights
         if run_mapping:
-            cull_recent_points(self.map, keyframe)
-            with self._timed("matching"):
-                fuse_with_neighbours(self.map, keyframe, self.camera, self.config)
+            with self._lock:
+                cull_recent_points(self.map, keyframe)
+                with self._timed("matching"):
+                    fuse_with_neighbours(self.map, keyframe, self.camera, config)
             with self._timed("local_ba"):
-                local_bundle_adjustment(self.map, keyframe, self.K, config)
+                local_bundle_adjustment(self.map, keyframe, self.K, config, self._lock)
             if config.loop_closure and self._keyframes_since_loop >= config.loop_cooldown_keyframes:
-                with self._timed("loop"):
+                with self._timed("loop"), self._lock:
                     loop = detect_loop(self.map, keyframe, self.database, self.camera, config)
                     if loop is not None:
                         close_loop(self.map, keyframe, loop, self.camera, config)
                         self.loops_closed += 1
                         self._keyframes_since_loop = 0
-                        loop_closed = True
-        self._keyframes_since_loop += 1
-        with self._timed("loop"):
+                        self._loop_closed_unreported = True
+        with self._timed("loop"), self._lock:
+            self._keyframes_since_loop += 1
             self.database.add(keyframe.id, keyframe.bow_words, keyframe.bow_weights)
-        self._reference = keyframe
-        self._frames_since_keyframe = 0
-        return keyframe, loop_closed
+
+    def _start_worker(self) -> None:
+        if self._worker is None:
+            self._worker = threading.Thread(target=self._work, name="tambridge-local-mapping", daemon=True)
+            self._worker.start()
+
+    def _work(self) -> None:
+        while True:
+            keyframe = self._jobs.get()
+            try:
+                if keyframe is None:
+                    return
+                if self._worker_error is None:
+                    self._map_keyframe(keyframe)
+            except BaseException as error:  # noqa: BLE001 - re-raised in the caller's thread by _raise_worker_error
+                self._worker_error = error
+            finally:
+                self._jobs.task_done()
+
+    def _raise_worker_error(self) -> None:
+        if self._worker_error is not None:
+            raise RuntimeError("the ORB frontend's mapping thread failed") from self._worker_error
 
     def _keyframe_event(self, keyframe: Keyframe) -> KeyframeEvent:
         """What the Fusion Bridge gets: the keyframe's matched map points and the view-selection counts."""
@@ -350,14 +419,22 @@ class OrbFrontend:
             record = _FrameRecord(frame.index, frame.timestamp_s, reference.id,
                                   reference.camera_from_world @ inverse(camera_from_world), tracked)
         self._records.append(record)
+        self._last = record
 
     # ------------------------------------------------------------------ results
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         """Keyframe id -> ``world_from_camera`` (4, 4) after every correction so far."""
-        return {k.id: k.world_from_camera.copy() for k in self.map.keyframes}
+        with self._lock:
+            return {k.id: k.world_from_camera.copy() for k in self.map.keyframes}
 
     def finish(self) -> FrontendResult:
-        """Global BA (if configured) and the final trajectories; call once, after the last frame."""
+        """Wait for local mapping, run global BA (if configured), return the final trajectories; call once."""
+        if self._worker is not None:
+            self._jobs.join()
+            self._jobs.put(None)
+            self._worker.join()
+            self._worker = None
+        self._raise_worker_error()
         if self.config.global_ba and len(self.map.keyframes) > 1:
             with self._timed("global_ba"):
                 global_bundle_adjustment(self.map, self.K, self.config)

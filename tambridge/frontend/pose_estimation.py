@@ -52,7 +52,7 @@ def solve_pnp_ransac(
     return camera_from_world, inliers_mask
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _pose_normal_equations(rotation, translation, points_world, observations, weights, thresholds, active, robust, fx, fy, cx, cy):
     hessian = np.zeros((6, 6))
     gradient = np.zeros(6)

@@ -62,7 +62,7 @@ class OrbFrontendConfig:
     relocalisation_min_inliers: int = 50
     # Keyframe insertion (ORB-SLAM2): tracked-point ratio to the reference keyframe, frames since the last one.
     keyframe_tracked_ratio: float = 0.75
-    keyframe_min_frames: int = 5
+    keyframe_min_frames: int = 8
     keyframe_max_frames: int = 30
     min_new_points: int = 100
     covisibility_min_shared: int = 15
@@ -78,6 +78,8 @@ class OrbFrontendConfig:
     loop_cooldown_keyframes: int = 10
     global_ba: bool = True
     global_ba_iterations: int = 10
+    # Keyframe work (fusion, local BA, loop closing) in a background thread; False: inline and deterministic.
+    mapping_thread: bool = True
 
     @property
     def depth_noise(self) -> float:

@@ -78,7 +78,7 @@ class Vocabulary:
             return Vocabulary(int(data["branching"]), int(data["depth"]), data["centres"], data["idf"])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _descend(centre_words, descriptor_words, branching, depth):
     out = np.empty(descriptor_words.shape[0], np.int64)
     first_leaf = 0
