@@ -118,8 +118,10 @@ class KeyframeEvent:
     ``points_world_m`` (M, 3) are the map points matched in this keyframe at ``keypoints_px`` (M, 2), with
     ``map_point_ids`` (M,) int64. ``shared_with_previous`` is M(i-1, i), the map points this keyframe shares
     with the previous keyframe; ``previous_total`` is T(i-1, i), the matched map points of the previous
-    keyframe (paper eq. 3: selected if beta <= M < alpha * T). For the Open3D frontend the three arrays are
-    empty, ``shared_with_previous`` is 0 and ``previous_total`` is 0 (it has no sparse map).
+    keyframe (paper eq. 3: selected if beta <= M < alpha * T). ``world_from_camera`` and the points are as at
+    insertion (before local BA when the ORB frontend maps in its background thread); local BA and loop closure
+    move them later, so ask ``keyframe_poses()`` for a keyframe's current pose. For the Open3D frontend the
+    three arrays are empty, ``shared_with_previous`` is 0 and ``previous_total`` is 0 (it has no sparse map).
     """
 
     keyframe_id: int
