@@ -24,7 +24,7 @@ from tambridge.export.mesh import fuse_tsdf_mesh, gaussian_views, sensor_views, 
 from tambridge.frontend.open3d_frontend import Open3dFrontend
 from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
 from tambridge.frontend.orb_frontend import OrbFrontend
-from tambridge.frontend.types import Frontend, FrontendResult, Open3dFrontendConfig, OrbFrontendConfig, TrackResult
+from tambridge.frontend.types import Frontend, FrontendResult, TrackResult
 from tambridge.io.tum import Frame, RgbdSequence, open_sequence
 from tambridge.runlog import RunLog, peak_memory_mb
 from tambridge.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
@@ -49,12 +49,11 @@ def make_frontend(config: Config, camera: Camera) -> Frontend:
     """The frontend named by ``config.frontend.kind``."""
     settings = config.frontend
     if settings.kind == "orb":
-        return OrbFrontend(camera, OrbFrontendConfig(loop_closure=settings.loop_closure, global_ba=settings.global_ba))
+        return OrbFrontend(camera, settings.orb)
     if settings.kind == "open3d":
-        return Open3dFrontend(camera, Open3dFrontendConfig(max_depth_m=settings.odometry_max_depth_m,
-                                                           depth_diff_max_m=settings.odometry_depth_diff_max_m))
+        return Open3dFrontend(camera, settings.open3d)
     if settings.kind == "open3d_f2f":
-        return FrameToFrameOdometry(camera, settings.odometry_max_depth_m, settings.odometry_depth_diff_max_m)
+        return FrameToFrameOdometry(camera, settings.open3d.max_depth_m, settings.open3d.depth_diff_max_m)
     raise ConfigError(f"frontend.kind={settings.kind!r}: expected one of orb, open3d, open3d_f2f")
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import yaml
 
 from tambridge.errors import TambridgeError
+from tambridge.frontend.types import Open3dFrontendConfig, OrbFrontendConfig
 
 
 class ConfigError(TambridgeError):
@@ -30,13 +31,15 @@ class InputConfig:
 
 @dataclasses.dataclass
 class FrontendConfig:
-    """Tracking frontend: ``orb`` (default), ``open3d`` (keyframes + pose graph) or ``open3d_f2f`` (frame to frame)."""
+    """Tracking frontend: ``orb`` (default), ``open3d`` (keyframes + pose graph) or ``open3d_f2f`` (frame to frame).
+
+    ``orb`` holds the ORB frontend's settings and ``open3d`` those of both Open3D frontends (frame to frame uses
+    its odometry depths only), so every one is reachable from YAML and ``--set frontend.orb.n_features=2000``.
+    """
 
     kind: str = "orb"
-    loop_closure: bool = True
-    global_ba: bool = True
-    odometry_max_depth_m: float = 4.0
-    odometry_depth_diff_max_m: float = 0.07
+    orb: OrbFrontendConfig = dataclasses.field(default_factory=OrbFrontendConfig)
+    open3d: Open3dFrontendConfig = dataclasses.field(default_factory=Open3dFrontendConfig)
 
 
 @dataclasses.dataclass

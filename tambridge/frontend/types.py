@@ -20,7 +20,7 @@ from tambridge.trajectory import Trajectory
 STAGES = ("features", "matching", "pnp", "local_ba", "loop", "global_ba")
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass
 class OrbFrontendConfig:
     """ORB RGB-D frontend settings; defaults are ORB-SLAM2's RGB-D values for a 640x480 Kinect.
 
@@ -87,7 +87,7 @@ class OrbFrontendConfig:
         return self.depth_noise_per_m if self.depth_residuals else 0.0
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass
 class Open3dFrontendConfig:
     """Open3D frontend: hybrid RGB-D odometry to the last keyframe, a keyframe pose graph with verified loop edges."""
 
