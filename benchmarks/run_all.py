@@ -119,14 +119,25 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def update_readme(table: str, command: str, machine: str) -> None:
+def describe_machine() -> str:
+    """CPU model, core count and Python version, for the README line that says where the table was measured."""
+    model = platform.processor() or platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        names = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines() if line.startswith("model name")]
+        model = names[0] if names else model
+    return f"{model}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
+def update_readme(table: str, command: str, machine: str, date: str) -> None:
+    """Rewrite README.md's section between the results markers: the machine, the date, the command and the table."""
     readme = ROOT / "README.md"
     text = readme.read_text()
     if README_START not in text:
         return
     head, rest = text.split(README_START, 1)
     _, tail = rest.split(README_END, 1)
-    section = (f"{README_START}\nMeasured {datetime.date.today().isoformat()} on {machine} with `{command}`:\n\n"
+    section = (f"{README_START}\nMeasured {date} on {machine} with `{command}`:\n\n"
                f"{table}\n{README_END}")
     atomic_write_text(readme, head + section + tail)
 
@@ -137,8 +148,16 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="first 100 frames of each sequence")
     parser.add_argument("--gpu", action="store_true", help="use CUDA (gsplat) where present")
     parser.add_argument("--methods", nargs="*", help="subset of method names")
+    parser.add_argument("--sequences", nargs="*", help="subset of sequence folder names")
     parser.add_argument("--no-readme", action="store_true", help="do not rewrite README.md's results section")
+    parser.add_argument("--readme-only", action="store_true",
+                        help="run nothing: regenerate README.md's results section from benchmarks/results/run_all.json")
     arguments = parser.parse_args()
+    results_path = ROOT / "benchmarks" / "results" / "run_all.json"
+    if arguments.readme_only:
+        result = json.loads(results_path.read_text())
+        update_readme(format_table(result["rows"]), result["command"], result["machine"], result["date"][:10])
+        return
     if arguments.gpu:
         import torch
 
@@ -149,6 +168,8 @@ def main() -> None:
     runs.mkdir(parents=True, exist_ok=True)
     rows = []
     for sequence in sequences_with_ground_truth(arguments.data):
+        if arguments.sequences and sequence.name not in arguments.sequences:
+            continue
         for method in METHODS:
             if arguments.methods and method.name not in arguments.methods:
                 continue
@@ -157,13 +178,13 @@ def main() -> None:
             rows.append(run_method(method, sequence, out, max_frames, arguments.gpu))
     table = format_table(rows)
     print(table)
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    machine = describe_machine()
     command = "python benchmarks/run_all.py --data ../shared/data" + (" --quick" if arguments.quick else "")
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine, "command": command,
               "rows": rows}
-    atomic_write_text(ROOT / "benchmarks" / "results" / "run_all.json", json.dumps(result, indent=2) + "\n")
+    atomic_write_text(results_path, json.dumps(result, indent=2) + "\n")
     if not arguments.no_readme:
-        update_readme(table, command, machine)
+        update_readme(table, command, machine, result["date"][:10])
 
 
 if __name__ == "__main__":
