@@ -1,22 +1,27 @@
 """Numba kernels of the CPU rasteriser: tile binning, forward compositing and its exact backward pass.
 
 Layout. The image is cut into ``TILE_PX`` x ``TILE_PX`` tiles. Each visible Gaussian is listed in every tile its
-3-sigma box overlaps, each tile's list in front-to-back order (one global depth sort, then a stable counting sort
-by tile). A list entry carries a copy of its Gaussian's packed row, so the passes below read memory in order
-instead of jumping around the (N, 8) input; that alone halves their time at 200k Gaussians. Tiles are
+3-sigma box overlaps, each tile's list in front-to-back order (one global sort of unique int64 depth keys, then a
+stable counting sort by tile, parallel over chunks of the depth order). A list entry carries a copy of its
+Gaussian's packed row, so the passes below read memory in order instead of jumping around the (N, 8) input; that
+alone halves their time at 200k Gaussians. Rows are stored in the dtype of the input (float32 for the mapper's
+float32 Gaussians, which halves the memory traffic at no loss: every kernel computes in float64). Tiles are
 independent, so both passes run one tile per thread (``prange``).
 
-Within a tile the Gaussians are *splatted*: each entry visits only the pixels of its 3-sigma box, in list order,
+Within a tile the Gaussians are *splatted*: each entry visits only the pixels of its 3-sigma disc, in list order,
 updating that pixel's running transmittance and sums. For the one-pixel Gaussians the mapper creates this costs
-~40 pixel updates per entry instead of the 256 of a per-pixel gather over the tile's list, with the same result:
+~30 pixel updates per entry instead of the 256 of a per-pixel gather over the tile's list, with the same result:
 every pixel still sees its Gaussians in depth order. A pixel is marked done when compositing stops there (3DGS
 rule: the Gaussian that would bring T below ``TRANSMITTANCE_MIN`` is left out), a tile when all its pixels are.
+Both passes evaluate a Gaussian's footprint with the same helpers (:func:`_footprint`, :func:`_row_span`), so
+their alphas agree to the bit.
 
 The backward pass is the 3DGS reverse pass: walking each tile's list back to front, every pixel recovers
 ``T_i = T_{i+1} / (1 - alpha_i)`` from the final transmittance stored by the forward pass and keeps the sums of
 what lies behind the current Gaussian (``acc``), which gives ``dC/dalpha_i = T_i (c_i - acc_i) - T_final bg / (1 - alpha_i)``
-(likewise for depth and silhouette; only the dot product of ``acc`` with the pixel's gradients is kept). Gradients are written per list entry, so threads never share a slot, then
-summed per Gaussian. All arithmetic is float64.
+(likewise for depth and silhouette; only the dot product of ``acc`` with the pixel's gradients is kept).
+Gradients are written per list entry, in entry order (each tile's rows are its thread's own, written in
+sequence), then each Gaussian gathers and sums its entries. All arithmetic is float64.
 """
 
 from __future__ import annotations
@@ -44,21 +49,19 @@ _CUTOFF_SQ = SIGMA_CUTOFF * SIGMA_CUTOFF
 
 @dataclasses.dataclass
 class TileBins:
-    """Per-tile front-to-back lists of the M visible Gaussians.
+    """Per-tile front-to-back lists of the visible Gaussians among N.
 
     Tile t owns entries ``tile_starts[t]:tile_starts[t + 1]`` of ``entry_rows`` (E, PACKED_COLUMNS), each a copy of
-    its Gaussian's packed row. ``order`` (M,) lists the visible Gaussians front to back; the k-th of them owns the
-    gradient slots ``slot_starts[k]:slot_starts[k + 1]``, one per tile it is listed in, and entry e writes its
-    gradients to slot ``entry_slots[e]``, so that summing a Gaussian's gradients reads consecutive memory.
+    its Gaussian's packed row (dtype of the packed input). Gaussian i is listed as the entries
+    ``slot_entries[slot_starts[i]:slot_starts[i + 1]]`` ((E,) and (N + 1,)), one per tile it overlaps (none when
+    culled): the backward pass writes per-entry gradients in entry order, and each Gaussian gathers its own.
     """
 
     entry_rows: np.ndarray
-    entry_slots: np.ndarray
+    slot_entries: np.ndarray
     tile_starts: np.ndarray
     tiles_x: int
-    order: np.ndarray
     slot_starts: np.ndarray
-    gaussian_count: int
 
 
 @dataclasses.dataclass
@@ -67,17 +70,6 @@ class ForwardState:
 
     transmittance_final: np.ndarray
     contributors: np.ndarray
-
-
-def depth_order(depths: np.ndarray) -> np.ndarray:
-    """Indices sorting ``depths`` (N,) by their float32 values, ties in index order (a stable argsort of float32).
-
-    Positive float32 bit patterns sort like the numbers, so one unique int64 key (depth bits, index) sorts with
-    numpy's fast unstable sort, ~5x faster than a stable argsort. Depths must be positive.
-    """
-    bits = depths.astype(np.float32).view(np.uint32).astype(np.uint64)
-    keys = (bits << np.uint64(32)) | np.arange(depths.size, dtype=np.uint64)
-    return (np.sort(keys) & np.uint64(0xFFFFFFFF)).astype(np.int64)
 
 
 @numba.njit(cache=True, inline="always")
@@ -92,70 +84,109 @@ def _pixel_box(u, v, radius, x_lo, x_hi, y_lo, y_hi):
     return x0, x1, y0, y1
 
 
-@numba.njit(cache=True)
-def _bin_tiles(packed, order, width, height, tile_px, tiles_x, tiles_y):
-    """Counting sort of (Gaussian, tile) entries by tile, stable in depth order.
+@numba.njit(cache=True, inline="always")
+def _tile_box(row, width, height, tile_px):
+    """Inclusive tile box (tx0, tx1, ty0, ty1) of a packed row; empty (tx1 < tx0) when the Gaussian is behind the
+    near plane, has no radius or touches no pixel centre of the image. NaN fields fail every test, so cull too."""
+    u, v, radius, depth = np.float64(row[U]), np.float64(row[V]), np.float64(row[RADIUS]), np.float64(row[DEPTH])
+    if not (depth > NEAR_PLANE_M and radius > 0.0):
+        return 0, -1, 0, -1
+    reach = SIGMA_CUTOFF * radius + BOX_SLACK_PX
+    if not (u + reach >= 0.0 and u - reach <= width - 1.0 and v + reach >= 0.0 and v - reach <= height - 1.0):
+        return 0, -1, 0, -1
+    x0, x1, y0, y1 = _pixel_box(u, v, radius, 0, width - 1, 0, height - 1)
+    if x0 > x1 or y0 > y1:  # between pixel centres
+        return 0, -1, 0, -1
+    return x0 // tile_px, x1 // tile_px, y0 // tile_px, y1 // tile_px
 
-    Serial: it is memory-bound (a random gather, then scattered appends to the tiles' lists), and a parallel
-    version with per-chunk counts cost more CPU time and no less wall time on 2 cores.
+
+_CULLED = np.iinfo(np.int64).max
+"""Depth key of a culled Gaussian: sorts after every visible one."""
+
+
+@numba.njit(parallel=True, cache=True)
+def _tile_boxes_and_keys(packed, depth_bits, width, height, tile_px, boxes, keys):
+    """Tile box (N, 4) int32 of every Gaussian and its depth key ``depth_bits << 32 | index`` (``_CULLED`` if culled);
+    the keys are unique, so sorting them gives the front-to-back order with ties in index order."""
+    for i in numba.prange(packed.shape[0]):
+        tx0, tx1, ty0, ty1 = _tile_box(packed[i], width, height, tile_px)
+        boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = tx0, tx1, ty0, ty1
+        keys[i] = (np.int64(depth_bits[i]) << 32) | i if tx0 <= tx1 else _CULLED
+
+
+@numba.njit(parallel=True, cache=True)
+def _fill_tiles(packed, boxes, sorted_keys, visible_count, tiles_x, tiles_y, chunk_count):
+    """Stable parallel counting sort by tile of the visible Gaussians, taken in depth order (``sorted_keys``).
+
+    The depth order is cut into chunks; each chunk counts its entries per tile, prefix sums give each chunk its own
+    write cursor in every tile after those of the chunks in front of it, so every tile list stays front to back.
+    Memory-bound: rows are read in random order and appended to many tile lists at once (a separate gather pass
+    into depth order first was slower).
     """
-    count = order.size
-    sorted_rows = np.empty((count, PACKED_COLUMNS))
-    tile_boxes = np.empty((count, 4), np.int64)
-    slot_starts = np.zeros(count + 1, np.int64)
-    tile_starts = np.zeros(tiles_x * tiles_y + 1, np.int64)
-    # The one pass that reads the input in random order; alone in its loop, so the loads overlap (2x faster).
-    for k in range(count):
-        for column in range(PACKED_COLUMNS):
-            sorted_rows[k, column] = packed[order[k], column]
-    for k in range(count):
-        x0, x1, y0, y1 = _pixel_box(sorted_rows[k, U], sorted_rows[k, V], sorted_rows[k, RADIUS], 0, width - 1, 0, height - 1)
-        if x0 > x1 or y0 > y1:  # off the image, or between pixel centres
-            tx0, tx1, ty0, ty1 = 0, -1, 0, -1
-        else:
-            tx0, tx1, ty0, ty1 = x0 // tile_px, x1 // tile_px, y0 // tile_px, y1 // tile_px
-        tile_boxes[k, 0], tile_boxes[k, 1], tile_boxes[k, 2], tile_boxes[k, 3] = tx0, tx1, ty0, ty1
-        slot_starts[k + 1] = slot_starts[k] + (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-        for ty in range(ty0, ty1 + 1):
-            for tx in range(tx0, tx1 + 1):
-                tile_starts[ty * tiles_x + tx + 1] += 1
-    for tile in range(tiles_x * tiles_y):
-        tile_starts[tile + 1] += tile_starts[tile]
-    cursor = tile_starts[:-1].copy()
-    entry_rows = np.empty((tile_starts[-1], PACKED_COLUMNS))
-    entry_slots = np.empty(tile_starts[-1], np.int64)
-    for k in range(count):
-        slot = slot_starts[k]
-        for ty in range(tile_boxes[k, 2], tile_boxes[k, 3] + 1):
-            for tx in range(tile_boxes[k, 0], tile_boxes[k, 1] + 1):
-                entry = cursor[ty * tiles_x + tx]
-                cursor[ty * tiles_x + tx] = entry + 1
-                for column in range(PACKED_COLUMNS):
-                    entry_rows[entry, column] = sorted_rows[k, column]
-                entry_slots[entry] = slot
-                slot += 1
-    return entry_rows, entry_slots, tile_starts, slot_starts
+    count = packed.shape[0]
+    tile_count = tiles_x * tiles_y
+    chunk_size = -(-visible_count // chunk_count)
+    chunk_tile_counts = np.zeros((chunk_count, tile_count), np.int64)
+    for chunk in numba.prange(chunk_count):
+        for k in range(chunk * chunk_size, min(visible_count, (chunk + 1) * chunk_size)):
+            i = sorted_keys[k] & 0xFFFFFFFF
+            for ty in range(boxes[i, 2], boxes[i, 3] + 1):
+                for tx in range(boxes[i, 0], boxes[i, 1] + 1):
+                    chunk_tile_counts[chunk, ty * tiles_x + tx] += 1
+    slot_starts = np.empty(count + 1, np.int64)
+    slot_starts[0] = 0
+    for i in range(count):
+        slot_starts[i + 1] = slot_starts[i] + (boxes[i, 1] - boxes[i, 0] + 1) * (boxes[i, 3] - boxes[i, 2] + 1)
+    tile_starts = np.empty(tile_count + 1, np.int64)
+    chunk_cursors = np.empty((chunk_count, tile_count), np.int64)
+    total = 0
+    for tile in range(tile_count):
+        tile_starts[tile] = total
+        for chunk in range(chunk_count):
+            chunk_cursors[chunk, tile] = total
+            total += chunk_tile_counts[chunk, tile]
+    tile_starts[tile_count] = total
+    entry_rows = np.empty((total, PACKED_COLUMNS), packed.dtype)
+    slot_entries = np.empty(total, np.int64)
+    for chunk in numba.prange(chunk_count):
+        cursors = chunk_cursors[chunk]
+        for k in range(chunk * chunk_size, min(visible_count, (chunk + 1) * chunk_size)):
+            i = sorted_keys[k] & 0xFFFFFFFF
+            slot = slot_starts[i]  # a Gaussian's slots run over its tile box row by row
+            for ty in range(boxes[i, 2], boxes[i, 3] + 1):
+                for tx in range(boxes[i, 0], boxes[i, 1] + 1):
+                    entry = cursors[ty * tiles_x + tx]
+                    cursors[ty * tiles_x + tx] = entry + 1
+                    for column in range(PACKED_COLUMNS):
+                        entry_rows[entry, column] = packed[i, column]
+                    slot_entries[slot] = entry
+                    slot += 1
+    return entry_rows, slot_entries, tile_starts, slot_starts
 
 
 def bin_tiles(packed: np.ndarray, width: int, height: int) -> TileBins:
-    """Bin packed Gaussians (N, PACKED_COLUMNS) float64 into tiles, front to back; Gaussians behind the near
-    plane or off the image are left out."""
-    reach = SIGMA_CUTOFF * packed[:, RADIUS] + BOX_SLACK_PX
-    u, v = packed[:, U], packed[:, V]
-    # Off-image Gaussians leave here, before the sort: a map is usually much larger than one view.
-    visible = np.flatnonzero(
-        (packed[:, DEPTH] > NEAR_PLANE_M) & (packed[:, RADIUS] > 0)
-        & (u + reach >= 0) & (u - reach <= width - 1) & (v + reach >= 0) & (v - reach <= height - 1)
-    )  # fmt: skip
-    order = visible[depth_order(packed[visible, DEPTH])]
+    """Bin packed Gaussians (N, PACKED_COLUMNS), float32 or float64, into tiles, front to back by their float32
+    depth (ties in index order); Gaussians behind the near plane or off the image are left out."""
+    count = packed.shape[0]
+    if count >= 2**32:
+        raise ValueError(f"bin_tiles: {count} Gaussians, the depth keys hold at most 2**32 - 1")
+    # Positive float32 bit patterns sort like the numbers (the only depths kept are > NEAR_PLANE_M > 0).
+    depth_bits = np.ascontiguousarray(packed[:, DEPTH]).astype(np.float32).view(np.int32)
     tiles_x, tiles_y = -(-width // TILE_PX), -(-height // TILE_PX)
-    entry_rows, entry_slots, tile_starts, slot_starts = _bin_tiles(packed, order, width, height, TILE_PX, tiles_x, tiles_y)
-    return TileBins(entry_rows, entry_slots, tile_starts, tiles_x, order, slot_starts, packed.shape[0])
+    boxes, keys = np.empty((count, 4), np.int32), np.empty(count, np.int64)
+    _tile_boxes_and_keys(packed, depth_bits, width, height, TILE_PX, boxes, keys)
+    keys.sort()  # numpy's vectorised sort: ~2x numba's, and unique keys make stability moot
+    visible_count = int(np.searchsorted(keys, _CULLED))
+    entry_rows, slot_entries, tile_starts, slot_starts = _fill_tiles(
+        packed, boxes, keys, visible_count, tiles_x, tiles_y, 4 * numba.get_num_threads()
+    )
+    return TileBins(entry_rows, slot_entries, tile_starts, tiles_x, slot_starts)
 
 
 @numba.njit(cache=True, inline="always")
-def _axis_falloff(centre, lo, hi, half_inv_radius_sq, step_ratio, offsets, distance_sq, falloff):
-    """For pixels lo..hi on one axis: offset p - centre, squared offset in radii^2 and ``exp(-offset^2 / 2r^2)``.
+def _axis_falloff(centre, lo, hi, half_inv_radius_sq, step_ratio, axis):
+    """For pixels lo..hi on one axis: ``axis[OFFSET, k]`` = p - centre, ``axis[DISTANCE_SQ, k]`` = offset^2 / r^2 and
+    ``axis[FALLOFF, k]`` = exp(-offset^2 / 2r^2), k = p - lo.
 
     exp(-|d|^2 / 2r^2) = exp(-dx^2 / 2r^2) exp(-dy^2 / 2r^2), so a box needs per-axis factors only, and along an
     axis they follow f_{k+1} = f_k g_k, g_{k+1} = g_k exp(-1 / r^2) (``step_ratio``): three exps per axis.
@@ -164,11 +195,52 @@ def _axis_falloff(centre, lo, hi, half_inv_radius_sq, step_ratio, offsets, dista
     value = math.exp(-half_inv_radius_sq * offset * offset)
     ratio = math.exp(-half_inv_radius_sq * (2.0 * offset + 1.0))
     for k in range(hi - lo + 1):
-        offsets[k] = offset + k
-        distance_sq[k] = 2.0 * half_inv_radius_sq * offsets[k] * offsets[k]
-        falloff[k] = value
+        axis[OFFSET, k] = offset + k
+        axis[DISTANCE_SQ, k] = 2.0 * half_inv_radius_sq * axis[OFFSET, k] * axis[OFFSET, k]
+        axis[FALLOFF, k] = value
         value *= ratio
         ratio *= step_ratio
+
+
+# Rows of the per-axis footprint buffers filled by _footprint.
+OFFSET, DISTANCE_SQ, FALLOFF = 0, 1, 2
+
+
+@numba.njit(cache=True, inline="always")
+def _entry_box(row, x_lo, x_hi, y_lo, y_hi):
+    """Pixel box (x0, x1, y0, y1) of a list entry's 3-sigma disc within the tile [x_lo, x_hi] x [y_lo, y_hi]."""
+    return _pixel_box(np.float64(row[U]), np.float64(row[V]), np.float64(row[RADIUS]), x_lo, x_hi, y_lo, y_hi)
+
+
+@numba.njit(cache=True, inline="always")
+def _footprint(row, x0, x1, y0, y1, x_axis, y_axis):
+    """Fill the per-axis footprint buffers (3, >= box side) of a list entry over its pixel box; returns 1 / (2 r^2).
+
+    The one place where the forward and backward passes evaluate a Gaussian's shape (with :func:`_row_span` for its
+    cut-off; the alpha at box pixel (kx, ky) is then ``opacity * x_axis[FALLOFF, kx] * y_axis[FALLOFF, ky]``), so
+    both see bit-identical alphas, which the backward's recovery ``T_i = T_{i+1} / (1 - alpha_i)`` relies on.
+    """
+    radius = np.float64(row[RADIUS])
+    half_inv_radius_sq = 0.5 / (radius * radius)
+    step_ratio = math.exp(-2.0 * half_inv_radius_sq)
+    _axis_falloff(np.float64(row[U]), x0, x1, half_inv_radius_sq, step_ratio, x_axis)
+    _axis_falloff(np.float64(row[V]), y0, y1, half_inv_radius_sq, step_ratio, y_axis)
+    return half_inv_radius_sq
+
+
+@numba.njit(cache=True, inline="always")
+def _row_span(x_axis, x_count, y_distance_sq):
+    """Box columns ``kx_lo..kx_hi`` of one box row that lie within the 3-sigma cut-off ``dx^2 + dy^2 <= 9 r^2``.
+
+    The test is the per-pixel one, in the same floating-point expression, done from both ends of the row: the
+    squared offsets are convex along the row, so the pixels that pass are one run (empty when kx_lo > kx_hi).
+    """
+    kx_lo, kx_hi = 0, x_count - 1
+    while kx_lo <= kx_hi and x_axis[DISTANCE_SQ, kx_lo] + y_distance_sq > _CUTOFF_SQ:
+        kx_lo += 1
+    while kx_hi >= kx_lo and x_axis[DISTANCE_SQ, kx_hi] + y_distance_sq > _CUTOFF_SQ:
+        kx_hi -= 1
+    return kx_lo, kx_hi
 
 
 @numba.njit(parallel=True, cache=True)
@@ -186,28 +258,26 @@ def _forward(entry_rows, tile_starts, tiles_x, tile_px, background, out_rgb, out
         silhouette = np.zeros((tile_h, tile_w))
         contributors = np.zeros((tile_h, tile_w), np.int32)
         done = np.zeros((tile_h, tile_w), np.bool_)
-        x_offsets, x_distance_sq, x_falloff = np.empty(tile_w), np.empty(tile_w), np.empty(tile_w)
-        y_offsets, y_distance_sq, y_falloff = np.empty(tile_h), np.empty(tile_h), np.empty(tile_h)
+        x_axis, y_axis = np.empty((3, tile_w)), np.empty((3, tile_h))
         pixels_left = tile_h * tile_w
         start = tile_starts[tile]
         for entry in range(start, tile_starts[tile + 1]):
             if pixels_left == 0:
                 break
             row = entry_rows[entry]
-            u, v, radius, z, opacity = row[U], row[V], row[RADIUS], row[DEPTH], row[OPACITY]
-            red, green, blue = row[RED], row[RED + 1], row[RED + 2]
-            half_inv_radius_sq = 0.5 / (radius * radius)
-            step_ratio = math.exp(-2.0 * half_inv_radius_sq)
-            x0, x1, y0, y1 = _pixel_box(u, v, radius, x_lo, x_hi, y_lo, y_hi)
-            _axis_falloff(u, x0, x1, half_inv_radius_sq, step_ratio, x_offsets, x_distance_sq, x_falloff)
-            _axis_falloff(v, y0, y1, half_inv_radius_sq, step_ratio, y_offsets, y_distance_sq, y_falloff)
+            x0, x1, y0, y1 = _entry_box(row, x_lo, x_hi, y_lo, y_hi)
+            _footprint(row, x0, x1, y0, y1, x_axis, y_axis)
+            opacity, z = np.float64(row[OPACITY]), np.float64(row[DEPTH])
+            red, green, blue = np.float64(row[RED]), np.float64(row[RED + 1]), np.float64(row[RED + 2])
             for ky in range(y1 - y0 + 1):
                 ly = y0 - y_lo + ky
-                for kx in range(x1 - x0 + 1):
+                kx_lo, kx_hi = _row_span(x_axis, x1 - x0 + 1, y_axis[DISTANCE_SQ, ky])
+                for kx in range(kx_lo, kx_hi + 1):
                     lx = x0 - x_lo + kx
-                    if done[ly, lx] or x_distance_sq[kx] + y_distance_sq[ky] > _CUTOFF_SQ:
+                    if done[ly, lx]:
                         continue
-                    alpha = min(opacity * x_falloff[kx] * y_falloff[ky], ALPHA_MAX)
+                    raw_alpha = opacity * x_axis[FALLOFF, kx] * y_axis[FALLOFF, ky]
+                    alpha = min(raw_alpha, ALPHA_MAX)
                     t = transmittance[ly, lx]
                     t_next = t * (1.0 - alpha)
                     if t_next < TRANSMITTANCE_MIN:
@@ -249,7 +319,7 @@ def composite_forward(
 
 
 @numba.njit(parallel=True, cache=True)
-def _backward(entry_rows, entry_slots, tile_starts, tiles_x, tile_px, background, transmittance_final, contributors, grad_rgb, grad_depth, grad_silhouette, slot_grads):
+def _backward(entry_rows, tile_starts, tiles_x, tile_px, background, transmittance_final, contributors, grad_rgb, grad_depth, grad_silhouette, entry_grads):
     height, width = grad_depth.shape
     for tile in numba.prange(tile_starts.size - 1):
         y_lo = (tile // tiles_x) * tile_px
@@ -273,28 +343,27 @@ def _backward(entry_rows, entry_slots, tile_starts, tiles_x, tile_px, background
                 pixel_grads[ly, lx, 3] = grad_depth[y_lo + ly, x_lo + lx]
                 pixel_grads[ly, lx, 4] = grad_silhouette[y_lo + ly, x_lo + lx]
                 background_term[ly, lx] *= transmittance[ly, lx]
-        x_offsets, x_distance_sq, x_falloff = np.empty(tile_w), np.empty(tile_w), np.empty(tile_w)
-        y_offsets, y_distance_sq, y_falloff = np.empty(tile_h), np.empty(tile_h), np.empty(tile_h)
-        start = tile_starts[tile]
-        for position in range(used.max() - 1, -1, -1):
+        x_axis, y_axis = np.empty((3, tile_w)), np.empty((3, tile_h))
+        start, end = tile_starts[tile], tile_starts[tile + 1]
+        last_used = used.max()
+        entry_grads[start + last_used : end] = 0.0  # behind every pixel's early stop: no gradient
+        for position in range(last_used - 1, -1, -1):
             entry = start + position
             row = entry_rows[entry]
-            u, v, radius, z, opacity = row[U], row[V], row[RADIUS], row[DEPTH], row[OPACITY]
-            red, green, blue = row[RED], row[RED + 1], row[RED + 2]
-            half_inv_radius_sq = 0.5 / (radius * radius)
-            step_ratio = math.exp(-2.0 * half_inv_radius_sq)
-            x0, x1, y0, y1 = _pixel_box(u, v, radius, x_lo, x_hi, y_lo, y_hi)
-            _axis_falloff(u, x0, x1, half_inv_radius_sq, step_ratio, x_offsets, x_distance_sq, x_falloff)
-            _axis_falloff(v, y0, y1, half_inv_radius_sq, step_ratio, y_offsets, y_distance_sq, y_falloff)
+            grad = entry_grads[entry]  # this tile's own rows: no other thread writes them
+            x0, x1, y0, y1 = _entry_box(row, x_lo, x_hi, y_lo, y_hi)
+            half_inv_radius_sq = _footprint(row, x0, x1, y0, y1, x_axis, y_axis)
+            radius, opacity, z = np.float64(row[RADIUS]), np.float64(row[OPACITY]), np.float64(row[DEPTH])
+            red, green, blue = np.float64(row[RED]), np.float64(row[RED + 1]), np.float64(row[RED + 2])
             grad_u = grad_v = grad_radius = grad_z = grad_opacity = grad_red = grad_green = grad_blue = 0.0
             for ky in range(y1 - y0 + 1):
                 ly = y0 - y_lo + ky
-                for kx in range(x1 - x0 + 1):
+                kx_lo, kx_hi = _row_span(x_axis, x1 - x0 + 1, y_axis[DISTANCE_SQ, ky])
+                for kx in range(kx_lo, kx_hi + 1):
                     lx = x0 - x_lo + kx
-                    distance_sq = x_distance_sq[kx] + y_distance_sq[ky]
-                    if position >= used[ly, lx] or distance_sq > _CUTOFF_SQ:
+                    if position >= used[ly, lx]:
                         continue
-                    raw_alpha = opacity * x_falloff[kx] * y_falloff[ky]
+                    raw_alpha = opacity * x_axis[FALLOFF, kx] * y_axis[FALLOFF, ky]
                     alpha = min(raw_alpha, ALPHA_MAX)
                     inv_one_minus_alpha = 1.0 / (1.0 - alpha)
                     t = transmittance[ly, lx] * inv_one_minus_alpha
@@ -311,25 +380,25 @@ def _backward(entry_rows, entry_slots, tile_starts, tiles_x, tile_px, background
                     behind[ly, lx] += alpha * (own - behind[ly, lx])
                     if raw_alpha > ALPHA_MAX:
                         continue  # clamped: alpha does not depend on the parameters here
-                    grad_opacity += grad_alpha * x_falloff[kx] * y_falloff[ky]
+                    grad_opacity += grad_alpha * x_axis[FALLOFF, kx] * y_axis[FALLOFF, ky]
                     # alpha = o exp(-q / 2), q = ((px - u)^2 + (py - v)^2) / r^2
                     grad_q = -0.5 * grad_alpha * raw_alpha
-                    grad_u -= grad_q * 2.0 * x_offsets[kx] * 2.0 * half_inv_radius_sq
-                    grad_v -= grad_q * 2.0 * y_offsets[ky] * 2.0 * half_inv_radius_sq
-                    grad_radius -= grad_q * 2.0 * distance_sq / radius
-            grad = slot_grads[entry_slots[entry]]  # this entry's own slot: no other thread writes it
+                    grad_u -= grad_q * 2.0 * x_axis[OFFSET, kx] * 2.0 * half_inv_radius_sq
+                    grad_v -= grad_q * 2.0 * y_axis[OFFSET, ky] * 2.0 * half_inv_radius_sq
+                    grad_radius -= grad_q * 2.0 * (x_axis[DISTANCE_SQ, kx] + y_axis[DISTANCE_SQ, ky]) / radius
             grad[U], grad[V], grad[RADIUS], grad[DEPTH], grad[OPACITY] = grad_u, grad_v, grad_radius, grad_z, grad_opacity
             grad[RED], grad[RED + 1], grad[RED + 2] = grad_red, grad_green, grad_blue
 
 
 @numba.njit(parallel=True, cache=True)
-def _sum_slots(order, slot_starts, slot_grads, grads):
-    for k in numba.prange(order.size):
+def _sum_entries(slot_starts, slot_entries, entry_grads, grads):
+    for i in numba.prange(slot_starts.size - 1):
         for column in range(PACKED_COLUMNS):
-            total = 0.0
-            for slot in range(slot_starts[k], slot_starts[k + 1]):
-                total += slot_grads[slot, column]
-            grads[order[k], column] = total
+            grads[i, column] = 0.0
+        for slot in range(slot_starts[i], slot_starts[i + 1]):
+            entry = slot_entries[slot]
+            for column in range(PACKED_COLUMNS):
+                grads[i, column] += entry_grads[entry, column]
 
 
 def composite_backward(
@@ -342,11 +411,11 @@ def composite_backward(
 ) -> np.ndarray:
     """Gradients (N, PACKED_COLUMNS) float64 of the loss w.r.t. the packed columns, given its gradients w.r.t.
     the rendered rgb (H, W, 3), depth (H, W) and silhouette (H, W), all float64."""
-    slot_grads = np.zeros((bins.entry_slots.size, PACKED_COLUMNS))
+    entry_grads = np.empty((bins.slot_entries.size, PACKED_COLUMNS))  # _backward writes every row
     _backward(
-        bins.entry_rows, bins.entry_slots, bins.tile_starts, bins.tiles_x, TILE_PX, np.asarray(background_rgb, np.float64),
-        state.transmittance_final, state.contributors, grad_rgb, grad_depth, grad_silhouette, slot_grads,
+        bins.entry_rows, bins.tile_starts, bins.tiles_x, TILE_PX, np.asarray(background_rgb, np.float64),
+        state.transmittance_final, state.contributors, grad_rgb, grad_depth, grad_silhouette, entry_grads,
     )
-    grads = np.zeros((bins.gaussian_count, PACKED_COLUMNS))
-    _sum_slots(bins.order, bins.slot_starts, slot_grads, grads)
+    grads = np.empty((bins.slot_starts.size - 1, PACKED_COLUMNS))
+    _sum_entries(bins.slot_starts, bins.slot_entries, entry_grads, grads)
     return grads
