@@ -138,12 +138,14 @@ def reconstruct(
             on_keyframe = lambda result, frame: mapping.on_keyframe(result.keyframe, frame, frontend.keyframe_poses())  # noqa: E731
         live_view = RerunViewer(viewer, sequence.camera) if viewer else None
         gaussian_counts: list[tuple[int, int]] = []
+        frames_without_depth: list[int] = []
         fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.camera)
         start_frame, keyframes_so_far = 0, 0
         if resume:
             checkpoint = load_checkpoint(checkpoint_file)
             check_resumable(checkpoint_file, checkpoint, to_dict(config), fingerprint)
-            start_frame, keyframes_so_far, elapsed_s = restore_run(checkpoint, frontend, mapping, run_log, gaussian_counts)
+            start_frame, keyframes_so_far, elapsed_s = restore_run(checkpoint, frontend, mapping, run_log, gaussian_counts,
+                                                                   frames_without_depth)
             started -= elapsed_s
             logger.info("resuming from %s at frame %d of %d (%d keyframes)", checkpoint_file, start_frame,
                         len(sequence), keyframes_so_far)
@@ -153,13 +155,19 @@ def reconstruct(
             def snapshot(next_frame: int) -> Checkpoint:
                 run = {"stage_seconds": dict(run_log.stage_seconds), "warnings": run_log.warnings,
                        "elapsed_s": time.perf_counter() - started, "gaussian_counts": list(gaussian_counts),
-                       "keyframes": checkpoints.keyframes}
+                       "frames_without_depth": list(frames_without_depth), "keyframes": checkpoints.keyframes}
                 return Checkpoint(next_frame, to_dict(config), fingerprint, frontend.state_dict(),
                                   None if mapping is None else mapping.state_dict(), run)
 
             checkpoints = KeyframeCheckpoints(checkpoint_file, config.checkpoint.every_keyframes, snapshot, keyframes_so_far)
 
         def on_frame(result: TrackResult, frame: Frame) -> None:
+            if not (frame.depth_m > 0).any():
+                # A frame without depth still tracks from colour (PnP on the map) but adds nothing to either map.
+                frames_without_depth.append(frame.index)
+                logger.warning("frame %d (t=%.6f): no valid depth in %s; %s", frame.index, frame.timestamp_s,
+                               sequence.depth_paths[frame.index].name,
+                               "tracked from colour" if result.tracked else "not tracked")
             if mapping is not None:
                 gaussian_counts.append((frame.index, len(mapping.map)))
             if live_view is not None:
@@ -188,6 +196,7 @@ def reconstruct(
             "frontend": config.frontend.kind,
             "frames_lost": tracking.frames_lost,
             "frames_relocalised": tracking.frames_relocalised,
+            "frames_without_depth": len(frames_without_depth),
             "loops_closed": tracking.loops_closed,
             "frontend_seconds_per_stage": tracking.timings_s,
             "seconds_total": total_s,
@@ -224,9 +233,10 @@ def reconstruct(
 
 
 def restore_run(checkpoint: Checkpoint, frontend: Frontend, mapping: MappingStage | None, run_log: RunLog,
-                gaussian_counts: list[tuple[int, int]]) -> tuple[int, int, float]:
-    """Load a checkpoint's state into a fresh frontend and mapping stage, and its counters into ``run_log`` and
-    ``gaussian_counts``; returns (next frame, keyframes so far, seconds the run had taken)."""
+                gaussian_counts: list[tuple[int, int]], frames_without_depth: list[int]) -> tuple[int, int, float]:
+    """Load a checkpoint's state into a fresh frontend and mapping stage, and its counters into ``run_log``,
+    ``gaussian_counts`` and ``frames_without_depth``; returns (next frame, keyframes so far, seconds the run had
+    taken)."""
     frontend.load_state_dict(checkpoint.frontend)
     if mapping is not None:
         mapping.load_state_dict(checkpoint.mapping)
@@ -235,6 +245,7 @@ def restore_run(checkpoint: Checkpoint, frontend: Frontend, mapping: MappingStag
         run_log.stage_seconds[stage] = run_log.stage_seconds.get(stage, 0.0) + seconds
     run_log.warnings += run["warnings"]
     gaussian_counts.extend(run["gaussian_counts"])
+    frames_without_depth.extend(run["frames_without_depth"])
     return checkpoint.next_frame, run["keyframes"], run["elapsed_s"]
 
 
