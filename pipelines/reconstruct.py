@@ -112,7 +112,10 @@ def reconstruct(
     output_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_file = checkpoint_path(output_dir)
     stale_outputs = ["metrics.json", "trajectory.txt", "keyframes.txt", "splats.ply", "mesh.ply", "report/index.html"]
-    if not resume:
+    if resume:
+        # Before anything is removed: --resume on a finished run (no checkpoint) must not cost its results.
+        checkpoint = load_checkpoint(checkpoint_file)
+    else:
         stale_outputs.append(str(checkpoint_file.relative_to(output_dir)))
     for stale in stale_outputs:
         # A re-run into the same folder must not leave an earlier run's results looking like this run's.
@@ -142,7 +145,6 @@ def reconstruct(
         fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.camera)
         start_frame, keyframes_so_far = 0, 0
         if resume:
-            checkpoint = load_checkpoint(checkpoint_file)
             check_resumable(checkpoint_file, checkpoint, to_dict(config), fingerprint)
             start_frame, keyframes_so_far, elapsed_s = restore_run(checkpoint, frontend, mapping, run_log, gaussian_counts,
                                                                    frames_without_depth)
@@ -176,6 +178,8 @@ def reconstruct(
                                         frame.depth_m, result.is_keyframe)
 
         tracking = track_sequence(sequence, frontend, run_log, progress, on_keyframe, on_frame, start_frame, checkpoints)
+        # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
+        peak_memory_tracking_mb = peak_memory_mb()
         trajectory, keyframes = tracking.trajectory, tracking.keyframe_trajectory
         write_tum_trajectory(output_dir / "trajectory.txt", trajectory)
         write_tum_trajectory(output_dir / "keyframes.txt", keyframes)
@@ -204,6 +208,7 @@ def reconstruct(
             "seconds_per_stage": dict(run_log.stage_seconds),
             "fps_per_stage": {name: len(sequence) / max(s, 1e-9) for name, s in run_log.stage_seconds.items()},
             "peak_memory_mb": peak_memory_mb(),
+            "peak_memory_mb_tracking": peak_memory_tracking_mb,
             "warnings": run_log.warnings,
             "trajectory": None,
         }

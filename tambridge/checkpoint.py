@@ -17,7 +17,6 @@ from __future__ import annotations
 import copyreg
 import dataclasses
 import hashlib
-import io
 import logging
 import pickle
 from pathlib import Path
@@ -142,14 +141,13 @@ def _open3d_reducers() -> dict[type, Callable]:
 
 
 def save_checkpoint(path: Path, checkpoint: Checkpoint) -> int:
-    """Write ``checkpoint`` to ``path`` atomically; returns its size in bytes."""
-    buffer = io.BytesIO()
-    pickler = pickle.Pickler(buffer, protocol=pickle.HIGHEST_PROTOCOL)
-    pickler.dispatch_table = {**copyreg.dispatch_table, **_open3d_reducers()}
-    pickler.dump(checkpoint)
-    with atomic_path(path) as temp_path:
-        temp_path.write_bytes(buffer.getvalue())
-    return buffer.tell()
+    """Write ``checkpoint`` to ``path`` atomically; returns its size in bytes. Pickled straight into the file, so
+    writing one needs no second copy of the state in memory."""
+    with atomic_path(path) as temp_path, open(temp_path, "wb") as handle:
+        pickler = pickle.Pickler(handle, protocol=pickle.HIGHEST_PROTOCOL)
+        pickler.dispatch_table = {**copyreg.dispatch_table, **_open3d_reducers()}
+        pickler.dump(checkpoint)
+        return handle.tell()
 
 
 def load_checkpoint(path: Path) -> Checkpoint:

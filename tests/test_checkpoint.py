@@ -27,8 +27,10 @@ from tambridge.checkpoint import (
     sequence_fingerprint,
 )
 from tambridge.config import load_config, to_dict
+from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.frontend.open3d_frontend import Open3dFrontend
 from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
+from tambridge.frontend.orb_frontend import OrbFrontend
 from tambridge.io.tum import open_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -130,11 +132,15 @@ def test_missing_corrupt_or_foreign_checkpoints_give_clear_errors(tmp_path):
     assert [p.name for p in path.parent.iterdir()] == ["checkpoint.pkl"]  # atomic: no temp file left
 
 
-def test_cli_resume_without_checkpoint_names_the_file(synthetic_sequence_dir, tmp_path):
-    result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out"),
-                                       "--quiet", "--resume", "--set", "mapper.enabled=false"])
+def test_cli_resume_without_checkpoint_names_the_file_and_keeps_results(synthetic_sequence_dir, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "metrics.json").write_text("{}")  # a finished run's results
+    result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--resume",
+                                       "--set", "mapper.enabled=false"])
     assert result.exit_code == 2
     assert "checkpoint.pkl: no checkpoint to resume from" in result.output
+    assert (out / "metrics.json").read_text() == "{}"
 
 
 @pytest.mark.parametrize("kind", ["open3d", "open3d_f2f"])
@@ -162,3 +168,29 @@ def test_open3d_frontends_continue_from_their_state(synthetic_sequence_dir, tmp_
     expected, got = uninterrupted.finish(), second.finish()
     np.testing.assert_allclose(got.trajectory.world_from_camera, expected.trajectory.world_from_camera, atol=1e-9)
     assert got.keyframe_frame_indices == expected.keyframe_frame_indices
+
+
+def test_orb_frontend_with_mapping_thread_checkpoints_between_frames(synthetic_sequence_dir, tmp_path):
+    """With the background mapping thread a state dict waits for queued keyframes; the restored frontend goes on."""
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=16)
+    config = load_config(None, ["frontend.orb.mapping_thread=true"]).frontend.orb
+    first = OrbFrontend(sequence.camera, config)
+    for index in range(8):
+        first.track(sequence[index])
+    state = first.state_dict()
+    assert first._jobs.unfinished_tasks == 0
+    path = tmp_path / "checkpoint.pkl"
+    save_checkpoint(path, Checkpoint(8, {}, {}, state, None, {}))
+    first.finish()
+    second = OrbFrontend(sequence.camera, config)
+    second.load_state_dict(load_checkpoint(path).frontend)
+    keyframes_before = len(second.map.keyframes)
+    # Shared objects stay shared: the reference keyframe is the map's own.
+    assert any(second._reference is keyframe for keyframe in second.map.keyframes)
+    for index in range(8, len(sequence)):
+        second.track(sequence[index])
+    result = second.finish()
+    assert len(result.trajectory.timestamps_s) == len(sequence)
+    assert len(result.keyframe_trajectory.timestamps_s) >= keyframes_before
+    errors = evaluate_trajectory(result.trajectory, sequence.ground_truth)
+    assert errors.ate_rmse_m < 0.2
