@@ -88,14 +88,18 @@ def _resolve_config(preset, overrides, max_frames, stride, camera_file):
 @click.option("--viewer", metavar="rerun|rerun:FILE.rrd", help="Stream to a rerun viewer, or save a rerun recording.")
 @click.option("--mesh-from", type=click.Choice(["tsdf", "gaussians"]),
               help="mesh.ply from the sensor depth (tsdf, default) or the Gaussian map's rendered depth.")
-def reconstruct(sequence_dir, output_dir, preset, overrides, max_frames, stride, camera_file, quiet, viewer, mesh_from) -> None:
+@click.option("--resume", is_flag=True,
+              help="Continue a killed run from OUTPUT/checkpoint/ (give the same sequence and options; the run needs "
+                   "--set checkpoint.every_keyframes=N).")
+def reconstruct(sequence_dir, output_dir, preset, overrides, max_frames, stride, camera_file, quiet, viewer, mesh_from,
+                resume) -> None:
     """Track SEQUENCE_DIR (TUM layout) and write trajectory, splats, mesh and metrics to --output."""
     from pipelines.reconstruct import reconstruct as run
 
     if mesh_from is not None:
         overrides = (*overrides, f"mesh.source={mesh_from}")
     config = _resolve_config(preset, overrides, max_frames, stride, camera_file)
-    _print_run_summary(run(sequence_dir, output_dir, config, progress=not quiet, viewer=viewer))
+    _print_run_summary(run(sequence_dir, output_dir, config, progress=not quiet, viewer=viewer, resume=resume))
     click.echo(f"report: {Path(output_dir) / 'report' / 'index.html'}")
 
 

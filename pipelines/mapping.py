@@ -26,6 +26,7 @@ import torch
 
 from tambridge.bridge.refinement import RefinementResult, refine_pose
 from tambridge.bridge.view_selection import Selection, select_view
+from tambridge.checkpoint import attribute_state, restore_attributes
 from tambridge.config import Config
 from tambridge.evaluation.rendering import RenderingScores, score_renders
 from tambridge.evaluation.trajectory import ate_rmse_m
@@ -229,6 +230,19 @@ class MappingStage:
 
         with self._threads():
             return score_renders(pairs())
+
+    def state_dict(self) -> dict:
+        """What a resumed run needs: the Gaussian map (:meth:`GaussianMap.state_dict`), the views, keyframe poses,
+        selection counts, the image cache and the random generator; not the sequence, config or run log."""
+        state = attribute_state(self, ("sequence", "config", "run_log", "camera", "map"))
+        state["map"] = self.map.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from :meth:`state_dict` (on a stage built with the same sequence and config)."""
+        state = dict(state)
+        self.map.load_state_dict(state.pop("map"))
+        restore_attributes(self, state)
 
 
 def evaluation_frames(frame_count: int, every: int, mapping_frames: set[int]) -> list[int]:

@@ -16,7 +16,15 @@ import numpy as np
 from tqdm import tqdm
 
 from tambridge.camera import Camera
-from tambridge.config import Config, ConfigError, to_yaml
+from tambridge.checkpoint import (
+    Checkpoint,
+    KeyframeCheckpoints,
+    check_resumable,
+    checkpoint_path,
+    load_checkpoint,
+    sequence_fingerprint,
+)
+from tambridge.config import Config, ConfigError, to_dict, to_yaml
 from tambridge.evaluation.report import RenderPair, write_report
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory
 from tambridge.export.atomic import atomic_write_text
@@ -64,36 +72,55 @@ def track_sequence(
     progress: bool,
     on_keyframe: Callable[[TrackResult, Frame], None] | None = None,
     on_frame: Callable[[TrackResult, Frame], None] | None = None,
+    start_frame: int = 0,
+    checkpoints: KeyframeCheckpoints | None = None,
 ) -> FrontendResult:
-    """Feed every frame to the frontend in order; returns its final result (after loop closure and global BA).
+    """Feed every frame from ``start_frame`` on to the frontend in order; returns its final result (after loop
+    closure and global BA).
 
     ``on_keyframe(result, frame)`` is called after each frame that made a keyframe (the online mapping); its time
     is not counted as tracking. ``on_frame(result, frame)`` is called after every frame (the live view).
+    ``checkpoints`` is told of every keyframe once the frame is mapped (``start_frame > 0``: a resumed run).
     """
-    for frame in tqdm(sequence, total=len(sequence), desc="tracking", unit="frame", disable=not progress):
+    for index in tqdm(range(start_frame, len(sequence)), total=len(sequence), initial=start_frame, desc="tracking",
+                      unit="frame", disable=not progress):
+        frame = sequence[index]
         with run_log.stage("tracking"):
             result = frontend.track(frame)
         if on_keyframe is not None and result.keyframe is not None:
             on_keyframe(result, frame)
         if on_frame is not None:
             on_frame(result, frame)
+        if checkpoints is not None and result.is_keyframe:
+            with run_log.stage("checkpoint"):
+                checkpoints.after_keyframe(index + 1)
     with run_log.stage("tracking"):
         return frontend.finish()
 
 
 def reconstruct(
-    sequence_dir: Path, output_dir: Path, config: Config, progress: bool = True, viewer: str | None = None
+    sequence_dir: Path, output_dir: Path, config: Config, progress: bool = True, viewer: str | None = None,
+    resume: bool = False,
 ) -> ReconstructResult:
     """Reconstruct a TUM-layout sequence into ``output_dir`` (see DESIGN.md for the folder's contents).
 
     ``viewer``: ``"rerun"`` streams the run to a spawned rerun viewer, ``"rerun:FILE.rrd"`` saves a recording.
+    ``resume``: continue from ``output_dir/checkpoint/`` (written every ``checkpoint.every_keyframes`` keyframes by
+    a run with the same config and sequence); the result is that of an uninterrupted run.
     """
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
-    for stale in ("metrics.json", "trajectory.txt", "keyframes.txt", "splats.ply", "mesh.ply", "report/index.html"):
+    checkpoint_file = checkpoint_path(output_dir)
+    stale_outputs = ["metrics.json", "trajectory.txt", "keyframes.txt", "splats.ply", "mesh.ply", "report/index.html"]
+    if resume:
+        # Before anything is removed: --resume on a finished run (no checkpoint) must not cost its results.
+        checkpoint = load_checkpoint(checkpoint_file)
+    else:
+        stale_outputs.append(str(checkpoint_file.relative_to(output_dir)))
+    for stale in stale_outputs:
         # A re-run into the same folder must not leave an earlier run's results looking like this run's.
         (output_dir / stale).unlink(missing_ok=True)
-    run_log = RunLog(output_dir / "run.log")
+    run_log = RunLog(output_dir / "run.log", append=resume)
     started = time.perf_counter()
     live_view = None
     try:
@@ -114,8 +141,35 @@ def reconstruct(
             on_keyframe = lambda result, frame: mapping.on_keyframe(result.keyframe, frame, frontend.keyframe_poses())  # noqa: E731
         live_view = RerunViewer(viewer, sequence.camera) if viewer else None
         gaussian_counts: list[tuple[int, int]] = []
+        frames_without_depth: list[int] = []
+        fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.camera)
+        start_frame, keyframes_so_far = 0, 0
+        if resume:
+            check_resumable(checkpoint_file, checkpoint, to_dict(config), fingerprint)
+            start_frame, keyframes_so_far, elapsed_s = restore_run(checkpoint, frontend, mapping, run_log, gaussian_counts,
+                                                                   frames_without_depth)
+            started -= elapsed_s
+            logger.info("resuming from %s at frame %d of %d (%d keyframes)", checkpoint_file, start_frame,
+                        len(sequence), keyframes_so_far)
+        checkpoints = None
+        if config.checkpoint.every_keyframes:
+
+            def snapshot(next_frame: int) -> Checkpoint:
+                run = {"stage_seconds": dict(run_log.stage_seconds), "warnings": run_log.warnings,
+                       "elapsed_s": time.perf_counter() - started, "gaussian_counts": list(gaussian_counts),
+                       "frames_without_depth": list(frames_without_depth), "keyframes": checkpoints.keyframes}
+                return Checkpoint(next_frame, to_dict(config), fingerprint, frontend.state_dict(),
+                                  None if mapping is None else mapping.state_dict(), run)
+
+            checkpoints = KeyframeCheckpoints(checkpoint_file, config.checkpoint.every_keyframes, snapshot, keyframes_so_far)
 
         def on_frame(result: TrackResult, frame: Frame) -> None:
+            if not (frame.depth_m > 0).any():
+                # A frame without depth still tracks from colour (PnP on the map) but adds nothing to either map.
+                frames_without_depth.append(frame.index)
+                logger.warning("frame %d (t=%.6f): no valid depth in %s; %s", frame.index, frame.timestamp_s,
+                               sequence.depth_paths[frame.index].name,
+                               "tracked from colour" if result.tracked else "not tracked")
             if mapping is not None:
                 gaussian_counts.append((frame.index, len(mapping.map)))
             if live_view is not None:
@@ -123,7 +177,9 @@ def reconstruct(
                     live_view.log_frame(frame.index, frame.timestamp_s, result.world_from_camera, frame.rgb,
                                         frame.depth_m, result.is_keyframe)
 
-        tracking = track_sequence(sequence, frontend, run_log, progress, on_keyframe, on_frame)
+        tracking = track_sequence(sequence, frontend, run_log, progress, on_keyframe, on_frame, start_frame, checkpoints)
+        # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
+        peak_memory_tracking_mb = peak_memory_mb()
         trajectory, keyframes = tracking.trajectory, tracking.keyframe_trajectory
         write_tum_trajectory(output_dir / "trajectory.txt", trajectory)
         write_tum_trajectory(output_dir / "keyframes.txt", keyframes)
@@ -144,6 +200,7 @@ def reconstruct(
             "frontend": config.frontend.kind,
             "frames_lost": tracking.frames_lost,
             "frames_relocalised": tracking.frames_relocalised,
+            "frames_without_depth": len(frames_without_depth),
             "loops_closed": tracking.loops_closed,
             "frontend_seconds_per_stage": tracking.timings_s,
             "seconds_total": total_s,
@@ -151,6 +208,7 @@ def reconstruct(
             "seconds_per_stage": dict(run_log.stage_seconds),
             "fps_per_stage": {name: len(sequence) / max(s, 1e-9) for name, s in run_log.stage_seconds.items()},
             "peak_memory_mb": peak_memory_mb(),
+            "peak_memory_mb_tracking": peak_memory_tracking_mb,
             "warnings": run_log.warnings,
             "trajectory": None,
         }
@@ -166,6 +224,8 @@ def reconstruct(
             logger.info("ATE RMSE %.2f cm over %d poses (SE(3)-aligned)", errors.ate_rmse_m * 100, errors.pose_count)
         write_run_report(output_dir, metrics, sequence, errors, mapping, trajectory, gaussian_counts)
         atomic_write_text(output_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+        # The run is whole: nothing is left to resume.
+        checkpoint_file.unlink(missing_ok=True)
         logger.info("finished in %.1f s", total_s)
         return ReconstructResult(trajectory, keyframes, metrics, output_dir)
     except BaseException as error:
@@ -175,6 +235,23 @@ def reconstruct(
         if live_view is not None:
             live_view.close()
         run_log.close()
+
+
+def restore_run(checkpoint: Checkpoint, frontend: Frontend, mapping: MappingStage | None, run_log: RunLog,
+                gaussian_counts: list[tuple[int, int]], frames_without_depth: list[int]) -> tuple[int, int, float]:
+    """Load a checkpoint's state into a fresh frontend and mapping stage, and its counters into ``run_log``,
+    ``gaussian_counts`` and ``frames_without_depth``; returns (next frame, keyframes so far, seconds the run had
+    taken)."""
+    frontend.load_state_dict(checkpoint.frontend)
+    if mapping is not None:
+        mapping.load_state_dict(checkpoint.mapping)
+    run = checkpoint.run
+    for stage, seconds in run["stage_seconds"].items():
+        run_log.stage_seconds[stage] = run_log.stage_seconds.get(stage, 0.0) + seconds
+    run_log.warnings += run["warnings"]
+    gaussian_counts.extend(run["gaussian_counts"])
+    frames_without_depth.extend(run["frames_without_depth"])
+    return checkpoint.next_frame, run["keyframes"], run["elapsed_s"]
 
 
 REPORT_RENDERS = 4

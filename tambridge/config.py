@@ -132,6 +132,14 @@ class EvaluationConfig:
 
 
 @dataclasses.dataclass
+class CheckpointConfig:
+    """Checkpoints for ``reconstruct --resume``: every ``every_keyframes`` keyframes (0: never) the frontend and
+    mapping state are written atomically to ``<output>/checkpoint/``; a finished run removes them."""
+
+    every_keyframes: int = 0
+
+
+@dataclasses.dataclass
 class Config:
     """The whole run configuration."""
 
@@ -142,6 +150,7 @@ class Config:
     mesh: MeshConfig = dataclasses.field(default_factory=MeshConfig)
     evaluation: EvaluationConfig = dataclasses.field(default_factory=EvaluationConfig)
     seed: int = 0
+    checkpoint: CheckpointConfig = dataclasses.field(default_factory=CheckpointConfig)
 
 
 def to_dict(config: Config) -> dict:

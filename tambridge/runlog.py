@@ -23,12 +23,13 @@ class RunLog:
     ``run.log`` is a log, not a result: it is appended as the run goes, so a killed run still says where it stopped.
     """
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, append: bool = False) -> None:
+        """``append``: continue an existing run.log (a resumed run) instead of starting a new one."""
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.stage_seconds: dict[str, float] = {}
         self.warnings = 0
-        self._handler = logging.FileHandler(self.path, mode="w")
+        self._handler = logging.FileHandler(self.path, mode="a" if append else "w")
         self._handler.setFormatter(logging.Formatter(LOG_FORMAT))
         self._counter = _WarningCounter(self)
         self.logger = logging.getLogger("tambridge")

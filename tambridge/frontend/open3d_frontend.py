@@ -21,6 +21,7 @@ import numpy as np
 import open3d as o3d
 
 from tambridge.camera import Camera
+from tambridge.checkpoint import attribute_state, restore_attributes
 from tambridge.frontend.open3d_odometry import odometry_step, to_open3d_intrinsic, to_open3d_rgbd
 from tambridge.frontend.pose_graph import PoseEdge, optimise_pose_graph
 from tambridge.frontend.types import FrontendResult, KeyframeEvent, Open3dFrontendConfig, TrackResult, empty_timings
@@ -222,3 +223,11 @@ class Open3dFrontend:
             frames_relocalised=0,
             loops_closed=self.loops_closed,
         )
+
+    def state_dict(self) -> dict:
+        """Everything a resumed run needs (keyframes, pose graph, motion model, frame records), for checkpoints."""
+        return attribute_state(self, ("camera", "config", "_intrinsic"))
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from :meth:`state_dict` (on a frontend built with the same camera and config)."""
+        restore_attributes(self, state)

@@ -13,6 +13,7 @@ import numpy as np
 import open3d as o3d
 
 from tambridge.camera import Camera
+from tambridge.checkpoint import attribute_state, restore_attributes
 from tambridge.geometry import inverse
 from tambridge.frontend.types import FrontendResult, KeyframeEvent, TrackResult, empty_timings
 from tambridge.io.tum import Frame
@@ -163,3 +164,11 @@ class FrameToFrameOdometry:
             frames_relocalised=0,
             loops_closed=0,
         )
+
+    def state_dict(self) -> dict:
+        """Everything a resumed run needs (previous frame, motion model, poses, keyframes), for checkpoints."""
+        return attribute_state(self, ("camera",))
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from :meth:`state_dict` (on a frontend built with the same camera and config)."""
+        restore_attributes(self, state)

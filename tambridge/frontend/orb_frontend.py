@@ -30,6 +30,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from tambridge.camera import Camera
+from tambridge.checkpoint import attribute_state, restore_attributes
 from tambridge.frontend.local_mapping import (
     create_points_from_depth,
     cull_recent_points,
@@ -462,3 +463,21 @@ class OrbFrontend:
             frames_relocalised=self.frames_relocalised,
             loops_closed=self.loops_closed,
         )
+
+    # ------------------------------------------------------------------ checkpoints
+    _TRANSIENT = ("camera", "config", "K", "extractor", "vocabulary", "_lock", "_timing_lock", "_jobs", "_worker",
+                  "_worker_error")
+    """Attributes a checkpoint leaves out: given to or rebuilt by the constructor, or threads and locks."""
+
+    def state_dict(self) -> dict:
+        """Everything a resumed run needs (sparse map, keyframe database, motion model, frame records, counters),
+        once the mapping thread has finished its queued keyframes. The values are the frontend's own objects:
+        pickle them before the next ``track``."""
+        self._jobs.join()
+        self._raise_worker_error()
+        with self._lock:
+            return attribute_state(self, self._TRANSIENT)
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from :meth:`state_dict` (on a frontend built with the same camera and config)."""
+        restore_attributes(self, state)

@@ -188,6 +188,10 @@ class Frontend(Protocol):
 
     def finish(self) -> FrontendResult: ...
 
+    def state_dict(self) -> dict: ...
+
+    def load_state_dict(self, state: dict) -> None: ...
+
 
 def empty_timings() -> dict[str, float]:
     """A timing dict with every stage at zero seconds."""

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from tambridge.camera import Camera
+from tambridge.checkpoint import attribute_state, restore_attributes
 from tambridge.config import MapperConfig
 from tambridge.gaussians.losses import map_loss
 from tambridge.gaussians.model import (
@@ -321,3 +322,22 @@ class GaussianMap:
         """Detached world-frame Gaussians (for export)."""
         with torch.no_grad():
             return self.gaussians()
+
+    def state_dict(self) -> dict:
+        """Parameters, Adam state, anchors and anchor poses (tensors on the CPU), for checkpoints."""
+        return _tensors_to(attribute_state(self, ("config", "device", "_learning_rates")), torch.device("cpu"))
+
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from :meth:`state_dict` (on a map built with the same config); tensors go to this map's device."""
+        restore_attributes(self, _tensors_to(state, self.device))
+
+
+def _tensors_to(value, device: torch.device):
+    """``value`` with every tensor in it (through dicts and lists) on ``device``."""
+    if isinstance(value, torch.Tensor):
+        return value.to(device)
+    if isinstance(value, dict):
+        return {key: _tensors_to(item, device) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_tensors_to(item, device) for item in value]
+    return value

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Iterable
 
 import cv2
 import numpy as np
@@ -19,6 +20,7 @@ import yaml
 from tambridge.camera import Camera
 from tambridge.export.atomic import atomic_path, atomic_write_text
 from tambridge.geometry import interpolate_pose, look_at
+from tambridge.io.tum import read_file_list
 from tambridge.trajectory import Trajectory, format_tum_trajectory
 
 SYNTHETIC_DEPTH_SCALE = 5000.0
@@ -264,3 +266,22 @@ def _write_png(path: Path, image: np.ndarray) -> None:
         ok, encoded = cv2.imencode(".png", image)
         assert ok, path
         temp_path.write_bytes(encoded.tobytes())
+
+
+def blank_frames(folder: Path, depth_frames: Iterable[int] = (), colour_frames: Iterable[int] = ()) -> None:
+    """Simulate sensor failures in a TUM-layout folder, in place: the depth images of ``depth_frames`` become all
+    invalid (0) and the colour images of ``colour_frames`` all black (a covered lens), same size, format and name.
+
+    Frame numbers are positions in the time-sorted ``depth.txt`` / ``rgb.txt`` lists (the sequence's frame indices
+    when colour and depth are listed one to one, as in the synthetic and 7-Scenes folders).
+    """
+    folder = Path(folder)
+    for listing, frames in (("depth.txt", depth_frames), ("rgb.txt", colour_frames)):
+        names = [name for _, name in read_file_list(folder / listing)]
+        for index in frames:
+            path = folder / names[index]
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            with atomic_path(path) as temp_path:
+                ok, encoded = cv2.imencode(path.suffix, np.zeros_like(image))
+                assert ok, path
+                temp_path.write_bytes(encoded.tobytes())

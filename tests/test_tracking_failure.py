@@ -1,0 +1,63 @@
+"""Sensor failures mid-run (whole frames of invalid depth, a covered lens): the run goes on, counts them, recovers."""
+
+from __future__ import annotations
+
+import re
+import shutil
+
+import numpy as np
+
+from pipelines.reconstruct import reconstruct
+from tambridge.config import load_config
+from tambridge.evaluation.trajectory import evaluate_trajectory
+from tambridge.io.synthetic import blank_frames
+from tambridge.io.tum import open_sequence
+from tambridge.trajectory import Trajectory
+
+NO_DEPTH = (8, 9, 10)
+BLACK = (18, 19, 20)
+OPTIONS = ("mapper.enabled=false", "mesh.enabled=false", "frontend.orb.mapping_thread=false")
+
+
+def _ate_m(trajectory: Trajectory, ground_truth: Trajectory, frames: np.ndarray) -> float:
+    return evaluate_trajectory(Trajectory(trajectory.timestamps_s[frames], trajectory.world_from_camera[frames]),
+                               ground_truth).ate_rmse_m
+
+
+def test_blank_frames_are_invalid_depth_and_black_colour(synthetic_sequence_dir, tmp_path):
+    folder = tmp_path / "damaged"
+    shutil.copytree(synthetic_sequence_dir, folder)
+    blank_frames(folder, depth_frames=[2], colour_frames=[3])
+    damaged, clean = open_sequence(folder), open_sequence(synthetic_sequence_dir)
+    assert not damaged[2].depth_m.any() and damaged[2].rgb.any()
+    assert not damaged[3].rgb.any() and np.array_equal(damaged[3].depth_m, clean[3].depth_m)
+    assert np.array_equal(damaged[4].rgb, clean[4].rgb)
+
+
+def test_run_counts_lost_frames_and_recovers(synthetic_sequence_dir, tmp_path):
+    folder = tmp_path / "damaged"
+    shutil.copytree(synthetic_sequence_dir, folder)
+    blank_frames(folder, depth_frames=NO_DEPTH, colour_frames=BLACK)
+    config = load_config(None, OPTIONS)
+    damaged = reconstruct(folder, tmp_path / "damaged_out", config, progress=False)
+    clean = reconstruct(synthetic_sequence_dir, tmp_path / "clean_out", config, progress=False)
+
+    log = (tmp_path / "damaged_out" / "run.log").read_text()
+    lost = {int(number) for number in re.findall(r"frame (\d+) \(t=[0-9.]+\): tracking lost", log)}
+    # A covered lens has no keypoints: those frames are lost; frames without depth still track from colour.
+    assert set(BLACK) <= lost
+    assert lost.isdisjoint(NO_DEPTH)
+    assert damaged.metrics["frames_lost"] == len(lost)
+    assert damaged.metrics["frames_without_depth"] == len(NO_DEPTH)
+    assert clean.metrics["frames_without_depth"] == 0
+    assert {int(n) for n in re.findall(r"frame (\d+) \(t=[0-9.]+\): no valid depth", log)} == set(NO_DEPTH)
+    recovered = [int(n) for n in re.findall(r"frame (\d+) \(t=[0-9.]+\): tracking recovered", log)]
+    assert any(max(BLACK) < n <= max(BLACK) + 3 for n in recovered), recovered
+    assert len(damaged.trajectory.timestamps_s) == len(open_sequence(folder))
+
+    # Tracking recovers: the frames with a working sensor are about as accurate as in the undamaged run.
+    ground_truth = open_sequence(folder).ground_truth
+    good = np.setdiff1d(np.arange(len(damaged.trajectory.timestamps_s)), NO_DEPTH + BLACK)
+    after = good[good > max(BLACK)]
+    assert _ate_m(damaged.trajectory, ground_truth, good) < _ate_m(clean.trajectory, ground_truth, good) + 0.03
+    assert _ate_m(damaged.trajectory, ground_truth, after) < _ate_m(clean.trajectory, ground_truth, after) + 0.03
