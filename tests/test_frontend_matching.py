@@ -6,6 +6,8 @@ import pytest
 from tambridge.camera import Camera
 from tambridge.frontend.matching import (
     build_keypoint_grid,
+    distinctive_indices,
+    distinctive_indices_reference,
     hamming_matrix,
     hamming_matrix_reference,
     match_descriptors,
@@ -34,6 +36,36 @@ def flip_bits(rng, descriptors, probability):
     noisy = descriptors.copy()
     flips = np.packbits(rng.random((len(descriptors), 256)) < probability, axis=1)
     return noisy ^ flips
+
+
+def test_distinctive_descriptor_is_the_medoid():
+    rng = np.random.default_rng(3)
+    # Each group: one centre descriptor and noisy copies of it (8% of bits flipped) plus an unrelated outlier;
+    # the centre has the least median distance to the others, so it is chosen wherever it sits in the group.
+    groups, centres, start = [], [], [0]
+    for size in (1, 2, 5, 11):
+        centre = random_descriptors(rng, 1)
+        members = [flip_bits(rng, np.repeat(centre, max(size - 2, 0), axis=0), 0.08), random_descriptors(rng, 1)][: size]
+        group = np.concatenate([centre] + members)[:size]
+        order = rng.permutation(size)
+        groups.append(group[order])
+        centres.append(start[-1] + int(np.flatnonzero(order == 0)[0]))
+        start.append(start[-1] + size)
+    descriptors, group_start = np.concatenate(groups), np.array(start)
+    chosen = distinctive_indices(descriptors, group_start)
+    np.testing.assert_array_equal(chosen, distinctive_indices_reference(descriptors, group_start))
+    # Groups of one and two have no majority: the first row wins ties.
+    assert chosen[0] == 0 and chosen[1] == 1
+    np.testing.assert_array_equal(chosen[2:], centres[2:])
+
+
+def test_distinctive_indices_match_reference_on_random_groups():
+    rng = np.random.default_rng(4)
+    sizes = rng.integers(1, 12, 40)
+    group_start = np.concatenate([[0], np.cumsum(sizes)])
+    descriptors = flip_bits(rng, np.repeat(random_descriptors(rng, 40), sizes, axis=0), 0.2)
+    np.testing.assert_array_equal(distinctive_indices(descriptors, group_start),
+                                  distinctive_indices_reference(descriptors, group_start))
 
 
 def test_hamming_matrix_matches_reference():

@@ -7,6 +7,7 @@ import numba
 import numpy as np
 
 from tambridge.frontend.reprojection import (
+    MIN_DEPTH_M,
     chi2_thresholds,
     huber_weights,
     pose_jacobian,
@@ -17,7 +18,6 @@ from tambridge.frontend.reprojection import (
 )
 from tambridge.geometry import exp_se3, transform_points
 
-MIN_DEPTH_M = 1e-3
 
 
 def solve_pnp_ransac(
