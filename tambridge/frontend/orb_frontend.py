@@ -37,7 +37,7 @@ from tambridge.frontend.local_mapping import (
     global_bundle_adjustment,
     local_bundle_adjustment,
 )
-from tambridge.frontend.loop_closing import close_loop, detect_loop
+from tambridge.frontend.loop_closing import LoopConsistency, close_loop, detect_loop
 from tambridge.frontend.map_matching import PoseFix, localise, match_map_points, refine_with_matches
 from tambridge.frontend.matching import build_keypoint_grid
 from tambridge.frontend.orb_features import FrameFeatures, OrbExtractor
@@ -103,6 +103,7 @@ class OrbFrontend:
         self._lost_streak = 0
         self._segment = -1
         self._keyframes_since_loop = 1 << 30
+        self._loop_consistency = LoopConsistency(config.loop_consistency)
         self._loop_closed_unreported = False
         self._lock = threading.RLock()
         self._timing_lock = threading.Lock()
@@ -358,7 +359,7 @@ class OrbFrontend:
                 local_bundle_adjustment(self.map, keyframe, self.K, config, self._lock)
             if config.loop_closure and self._keyframes_since_loop >= config.loop_cooldown_keyframes:
                 with self._timed("loop"), self._lock:
-                    loop = detect_loop(self.map, keyframe, self.database, self.camera, config)
+                    loop = detect_loop(self.map, keyframe, self.database, self.camera, config, self._loop_consistency)
                     if loop is not None:
                         close_loop(self.map, keyframe, loop, self.camera, config)
                         self.loops_closed += 1
