@@ -172,3 +172,17 @@ def test_pnp_then_refinement_recovers_the_pose_and_rejects_outliers():
     refined, inliers = refine_pose(pnp_pose, points_world, observations, np.ones(len(points_world)), K, 0.003)
     assert not inliers[:40].any() and inliers[40:].mean() > 0.9
     assert np.linalg.norm(inverse(refined)[:3, 3] - inverse(camera_from_world)[:3, 3]) < 0.005
+
+
+def test_refinement_from_the_prior_alone_rejects_outliers_and_returns_a_rotation():
+    # Tracking refines from the motion prior without PnP-RANSAC when the prior is close (ORB-SLAM's motion model);
+    # the prior here is 2-3 cm / 1 degree off and its rotation slightly off SO(3), as a long chain of products is.
+    rng = np.random.default_rng(7)
+    camera_from_world, points_world, observations = _scene(rng, outliers=40)
+    prior = exp_se3(np.array([0.02, -0.03, 0.01, 0.01, -0.015, 0.01])) @ camera_from_world
+    prior[:3, :3] *= 1.0 + 1e-6
+    refined, inliers = refine_pose(prior, points_world, observations, np.ones(len(points_world)), K, 0.003)
+    assert not inliers[:40].any() and inliers[40:].mean() > 0.9
+    assert np.linalg.norm(inverse(refined)[:3, 3] - inverse(camera_from_world)[:3, 3]) < 0.005
+    np.testing.assert_allclose(refined[:3, :3] @ refined[:3, :3].T, np.eye(3), atol=1e-12)
+    assert abs(np.linalg.det(refined[:3, :3]) - 1.0) < 1e-12

@@ -60,6 +60,8 @@ logger = logging.getLogger("tambridge.frontend.orb")
 MIN_KEYPOINTS_WITH_DEPTH_TO_START = 50
 LOST_FRAMES_BEFORE_NEW_SEGMENT = 3
 RELOCALISATION_CANDIDATES = 5
+# Refinement from the motion prior is kept when at least this fraction of the matches stay inliers.
+PRIOR_MIN_INLIER_FRACTION = 0.5
 
 
 @dataclasses.dataclass
@@ -207,10 +209,15 @@ class OrbFrontend:
         if len(ids) < config.min_inliers // 2:
             return None, np.zeros(0, np.int64)
         with self._timed("pnp"):
-            camera_from_world, _ = solve_pnp_ransac(self.map.points.positions_m[ids], features.keypoints_px[keypoints],
-                                                    self.K, predicted, config.pnp_reprojection_px, config.pnp_iterations)
-            fix = refine_with_matches(predicted if camera_from_world is None else camera_from_world,
-                                      features, keypoints, ids, self.map, self.K, config)
+            # As ORB-SLAM's TrackWithMotionModel: refine from the prior; PnP-RANSAC (about a third of the
+            # tracking time) only when the prior leaves too many matches as outliers.
+            fix = refine_with_matches(predicted, features, keypoints, ids, self.map, self.K, config)
+            if fix.inlier_count < max(config.min_inliers, PRIOR_MIN_INLIER_FRACTION * len(ids)):
+                camera_from_world, _ = solve_pnp_ransac(self.map.points.positions_m[ids], features.keypoints_px[keypoints],
+                                                        self.K, predicted, config.pnp_reprojection_px, config.pnp_iterations)
+                if camera_from_world is not None:
+                    ransac_fix = refine_with_matches(camera_from_world, features, keypoints, ids, self.map, self.K, config)
+                    fix = ransac_fix if ransac_fix.inlier_count > fix.inlier_count else fix
         with self._timed("matching"):
             keypoints, ids, in_view = match_map_points(self.map, point_ids, fix.camera_from_world, features, grid,
                                                        self.camera, config, config.refine_radius_px)
