@@ -186,3 +186,27 @@ def test_refinement_from_the_prior_alone_rejects_outliers_and_returns_a_rotation
     assert np.linalg.norm(inverse(refined)[:3, 3] - inverse(camera_from_world)[:3, 3]) < 0.005
     np.testing.assert_allclose(refined[:3, :3] @ refined[:3, :3].T, np.eye(3), atol=1e-12)
     assert abs(np.linalg.det(refined[:3, :3]) - 1.0) < 1e-12
+
+
+def test_map_points_take_the_distinctive_descriptor_of_their_observations():
+    from tambridge.frontend.orb_features import FrameFeatures
+    from tambridge.frontend.slam_map import Keyframe, SlamMap
+
+    rng = np.random.default_rng(8)
+    slam_map = SlamMap()
+    centres = random_descriptors(rng, 2)
+    # Point 0 is first seen through an unusual view (30% of bits off); four later keyframes see it close to
+    # its centre descriptor, one of them exactly. Point 1 is seen once and keeps its descriptor.
+    first = flip_bits(rng, centres[:1], 0.3)
+    ids = slam_map.points.add(np.zeros((2, 3)) + [0.0, 0.0, 2.0], np.concatenate([first, centres[1:]]),
+                              np.zeros((2, 3), np.uint8), np.zeros(3), np.zeros(2, np.int64), 0, 1.2, 8)
+    views = [first, centres[:1]] + [flip_bits(rng, centres[:1], 0.05) for _ in range(3)]
+    for keyframe_id, descriptor in enumerate(views):
+        n = 2 if keyframe_id == 0 else 1
+        descriptors = np.concatenate([descriptor, centres[1:]])[:n]
+        features = FrameFeatures(np.zeros((n, 2)), np.zeros(n, np.int32), descriptors, np.ones(n), np.zeros((n, 3)),
+                                 np.zeros((n, 3), np.uint8))
+        slam_map.keyframes.append(Keyframe(keyframe_id, keyframe_id, 0.0, np.eye(4), features, ids[:n].copy(), 0))
+    slam_map.update_descriptors(ids)
+    np.testing.assert_array_equal(slam_map.points.descriptors[ids[0]], centres[0])
+    np.testing.assert_array_equal(slam_map.points.descriptors[ids[1]], centres[1])
