@@ -63,7 +63,6 @@ class OrbFrontendConfig:
     # Keyframe insertion (ORB-SLAM2): tracked-point ratio to the reference keyframe, frames since the last one.
     keyframe_tracked_ratio: float = 0.75
     keyframe_min_frames: int = 8
-    keyframe_max_frames: int = 30
     min_new_points: int = 100
     covisibility_min_shared: int = 15
     distinctive_descriptors: bool = True
