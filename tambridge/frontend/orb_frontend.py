@@ -1,10 +1,12 @@
 """The tracking-centred ORB RGB-D frontend (paper sec. 3.2, "ORB visual odometry similar to ORB-SLAM3").
 
 Per frame: ORB features with depth -> map points of the local map projected with the constant-velocity
-prior and matched by descriptor near their projection -> PnP-RANSAC -> motion-only refinement with a Huber
-kernel -> a second, tighter projection search and refinement. Tracking a frame decides whether it becomes a
-keyframe (ORB-SLAM2's rules); a keyframe adds map points from its depth, culls bad recent points, runs local
-BA, and looks for a loop (bag of words, PnP verification, pose graph, point fusion). A lost frame tries
+prior and matched by descriptor near their projection -> motion-only refinement with a Huber kernel from
+the prior (PnP-RANSAC only if the prior leaves most matches outliers) -> a second, tighter projection search
+and refinement. Tracking a frame decides whether it becomes a keyframe (ORB-SLAM2's rules); a keyframe adds
+map points from its depth, culls bad recent points, fuses duplicates (points keep their most distinctive
+descriptor), runs local BA, and looks for a loop (bag of words, candidates consistent over consecutive
+keyframes, PnP verification, pose graph, point fusion). A lost frame tries
 relocalisation against the keyframes; failing that it is reported (warning) and, after a few failures, a new
 map segment starts, to be joined to the old one by the next loop closure. ``finish()`` runs global BA and
 re-anchors every frame to its reference keyframe.
