@@ -148,8 +148,6 @@ def close_loop(slam_map: SlamMap, keyframe: Keyframe, loop: LoopDetection, camer
     slam_map.recount_observations()
     for k in set(touched) | {k.id for k in group}:
         slam_map.update_covisibility(slam_map.keyframes[k], config.covisibility_min_shared)
-    if config.distinctive_descriptors:
-        slam_map.update_descriptors(slam_map.points_of([slam_map.keyframes[k] for k in touched]))
     shift_m = float(np.linalg.norm(correction[:3, 3]))
     logger.info("loop closed: keyframe %d (frame %d) revisits keyframe %d (frame %d), %d inliers, correction %.3f m",
                 keyframe.id, keyframe.frame_index, candidate.id, candidate.frame_index, loop.fix.inlier_count, shift_m)
