@@ -5,7 +5,9 @@ frontend, and plain frame-to-frame Open3D RGB-D odometry (the peer).
     python benchmarks/frontend.py --max-frames 200 --methods orb  # a subset
 
 Each (method, sequence) runs in its own process. frames/s counts only the time inside ``track`` and
-``finish`` (reading and decoding images is excluded and reported apart as ``read s``); peak memory is the
+``finish`` (reading and decoding images is excluded and reported apart as ``read s``); ``CPU frames/s`` divides
+by the process CPU time over the same calls (all threads), which other processes on the machine disturb far
+less than wall time, and ``load`` is the 1-minute load average when the row started; peak memory is the
 child's ``ru_maxrss`` (read with wait4, so it includes the decoded images and Python itself). ATE is the RMSE
 after SE(3) alignment; RPE is the translational RMSE between consecutive frames. The table goes to stdout,
 the rows to benchmarks/results/frontend.json.
@@ -61,22 +63,26 @@ def run_one(method: str, folder: Path, max_frames: int | None, output: Path) -> 
 
     sequence = open_sequence(folder, max_frames=max_frames)
     frontend = make_frontend(method, sequence.camera)
-    tracking_s = reading_s = 0.0
+    tracking_s = reading_s = cpu_s = 0.0
+    load = os.getloadavg()[0]
     for index in range(len(sequence)):
         started = time.perf_counter()
         frame = sequence[index]
         reading_s += time.perf_counter() - started
-        started = time.perf_counter()
+        started, cpu_started = time.perf_counter(), time.process_time()
         frontend.track(frame)
         tracking_s += time.perf_counter() - started
-    started = time.perf_counter()
+        cpu_s += time.process_time() - cpu_started
+    started, cpu_started = time.perf_counter(), time.process_time()
     result = frontend.finish()
     tracking_s += time.perf_counter() - started
+    cpu_s += time.process_time() - cpu_started
     errors = evaluate_trajectory(result.trajectory, sequence.ground_truth, align="se3")
     row = {
         "method": METHODS[method], "key": method, "sequence": folder.name, "frames": len(sequence),
         "ate_cm": 100 * errors.ate_rmse_m, "rpe_cm": 100 * errors.rpe_trans_rmse_m, "rpe_deg": errors.rpe_rot_rmse_deg,
         "fps": len(sequence) / tracking_s, "tracking_s": tracking_s, "read_s": reading_s,
+        "cpu_fps": len(sequence) / cpu_s, "cpu_s": cpu_s, "load_1min": load,
         "keyframes": len(result.keyframe_poses), "loops": result.loops_closed, "lost": result.frames_lost,
         "relocalised": result.frames_relocalised, "stage_s": result.timings_s,
     }
@@ -101,7 +107,8 @@ def run_child(method: str, folder: Path, max_frames: int | None) -> dict:
 def format_table(rows: list[dict]) -> str:
     columns = [("sequence", "sequence", "{}"), ("method", "method", "{}"), ("frames", "frames", "{}"),
                ("ATE cm", "ate_cm", "{:.2f}"), ("RPE cm/frame", "rpe_cm", "{:.2f}"), ("RPE deg/frame", "rpe_deg", "{:.3f}"),
-               ("frames/s", "fps", "{:.1f}"), ("read s", "read_s", "{:.1f}"), ("peak MB", "peak_memory_mb", "{:.0f}"),
+               ("frames/s", "fps", "{:.1f}"), ("CPU frames/s", "cpu_fps", "{:.1f}"), ("load", "load_1min", "{:.1f}"),
+               ("read s", "read_s", "{:.1f}"), ("peak MB", "peak_memory_mb", "{:.0f}"),
                ("keyframes", "keyframes", "{}"), ("loops", "loops", "{}"), ("lost", "lost", "{}")]
     lines = ["| " + " | ".join(title for title, _, _ in columns) + " |", "|" + "---|" * len(columns)]
     for row in rows:

@@ -63,6 +63,18 @@ def inverse(transform: np.ndarray) -> np.ndarray:
     return out
 
 
+def orthonormalised(transform: np.ndarray) -> np.ndarray:
+    """The 4x4 rigid transform with the rotation nearest (Frobenius) to ``transform``'s 3x3 block, by SVD.
+
+    Chains of products (a pose from the previous one times a motion) drift off SO(3) by rounding; this
+    puts them back.
+    """
+    u, _, vt = np.linalg.svd(transform[:3, :3])
+    out = transform.copy()
+    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    return out
+
+
 def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     """Apply a 4x4 transform to points ``(N, 3)`` in frame b; returns ``(N, 3)`` in frame a."""
     return points_b @ a_from_b[:3, :3].T + a_from_b[:3, 3]

@@ -2,6 +2,7 @@
 
 import numpy as np
 
+from tambridge.frontend.loop_closing import LoopConsistency
 from tambridge.frontend.pose_graph import PoseEdge, optimise_pose_graph
 from tambridge.frontend.vocabulary import DEFAULT_VOCABULARY_PATH, KeyframeDatabase, Vocabulary, bow_score, train_vocabulary
 from tambridge.geometry import exp_se3, inverse
@@ -58,3 +59,17 @@ def test_pose_graph_convention_and_loop_correction():
     perturbed = np.stack([truth[0]] + [t @ exp_se3(rng.normal(0, 0.02, 6)) for t in truth[1:]])
     optimised, _ = optimise_pose_graph(perturbed, exact, reference_node=0)
     np.testing.assert_allclose(optimised, truth, atol=1e-5)
+
+
+def test_loop_candidate_needs_consecutive_consistent_groups():
+    consistency = LoopConsistency(required=3)
+    # Keyframe 40 revisits the place of keyframes 3-6: its candidate groups overlap from one query to the next.
+    assert consistency.accept([(5, {4, 5, 6}), (20, {19, 20})]) == []
+    assert consistency.accept([(6, {5, 6, 7})]) == []  # 1 consecutive
+    assert consistency.accept([(4, {3, 4, 5}), (30, {30, 31})]) == []  # 2
+    assert consistency.accept([(30, {29, 30}), (5, {4, 5})]) == [5]  # 3: accepted; 30 has only 1
+    # A query without candidates breaks every chain.
+    assert consistency.accept([]) == []
+    assert consistency.accept([(5, {4, 5})]) == []
+    # required=0 accepts every candidate at once, in the order given.
+    assert LoopConsistency(required=0).accept([(9, {9}), (2, {2, 3})]) == [9, 2]

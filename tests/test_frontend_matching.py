@@ -6,6 +6,8 @@ import pytest
 from tambridge.camera import Camera
 from tambridge.frontend.matching import (
     build_keypoint_grid,
+    distinctive_indices,
+    distinctive_indices_reference,
     hamming_matrix,
     hamming_matrix_reference,
     match_descriptors,
@@ -34,6 +36,36 @@ def flip_bits(rng, descriptors, probability):
     noisy = descriptors.copy()
     flips = np.packbits(rng.random((len(descriptors), 256)) < probability, axis=1)
     return noisy ^ flips
+
+
+def test_distinctive_descriptor_is_the_medoid():
+    rng = np.random.default_rng(3)
+    # Each group: one centre descriptor and noisy copies of it (8% of bits flipped) plus an unrelated outlier;
+    # the centre has the least median distance to the others, so it is chosen wherever it sits in the group.
+    groups, centres, start = [], [], [0]
+    for size in (1, 2, 5, 11):
+        centre = random_descriptors(rng, 1)
+        members = [flip_bits(rng, np.repeat(centre, max(size - 2, 0), axis=0), 0.08), random_descriptors(rng, 1)][: size]
+        group = np.concatenate([centre] + members)[:size]
+        order = rng.permutation(size)
+        groups.append(group[order])
+        centres.append(start[-1] + int(np.flatnonzero(order == 0)[0]))
+        start.append(start[-1] + size)
+    descriptors, group_start = np.concatenate(groups), np.array(start)
+    chosen = distinctive_indices(descriptors, group_start)
+    np.testing.assert_array_equal(chosen, distinctive_indices_reference(descriptors, group_start))
+    # Groups of one and two have no majority: the first row wins ties.
+    assert chosen[0] == 0 and chosen[1] == 1
+    np.testing.assert_array_equal(chosen[2:], centres[2:])
+
+
+def test_distinctive_indices_match_reference_on_random_groups():
+    rng = np.random.default_rng(4)
+    sizes = rng.integers(1, 12, 40)
+    group_start = np.concatenate([[0], np.cumsum(sizes)])
+    descriptors = flip_bits(rng, np.repeat(random_descriptors(rng, 40), sizes, axis=0), 0.2)
+    np.testing.assert_array_equal(distinctive_indices(descriptors, group_start),
+                                  distinctive_indices_reference(descriptors, group_start))
 
 
 def test_hamming_matrix_matches_reference():
@@ -140,3 +172,41 @@ def test_pnp_then_refinement_recovers_the_pose_and_rejects_outliers():
     refined, inliers = refine_pose(pnp_pose, points_world, observations, np.ones(len(points_world)), K, 0.003)
     assert not inliers[:40].any() and inliers[40:].mean() > 0.9
     assert np.linalg.norm(inverse(refined)[:3, 3] - inverse(camera_from_world)[:3, 3]) < 0.005
+
+
+def test_refinement_from_the_prior_alone_rejects_outliers_and_returns_a_rotation():
+    # Tracking refines from the motion prior without PnP-RANSAC when the prior is close (ORB-SLAM's motion model);
+    # the prior here is 2-3 cm / 1 degree off and its rotation slightly off SO(3), as a long chain of products is.
+    rng = np.random.default_rng(7)
+    camera_from_world, points_world, observations = _scene(rng, outliers=40)
+    prior = exp_se3(np.array([0.02, -0.03, 0.01, 0.01, -0.015, 0.01])) @ camera_from_world
+    prior[:3, :3] *= 1.0 + 1e-6
+    refined, inliers = refine_pose(prior, points_world, observations, np.ones(len(points_world)), K, 0.003)
+    assert not inliers[:40].any() and inliers[40:].mean() > 0.9
+    assert np.linalg.norm(inverse(refined)[:3, 3] - inverse(camera_from_world)[:3, 3]) < 0.005
+    np.testing.assert_allclose(refined[:3, :3] @ refined[:3, :3].T, np.eye(3), atol=1e-12)
+    assert abs(np.linalg.det(refined[:3, :3]) - 1.0) < 1e-12
+
+
+def test_map_points_take_the_distinctive_descriptor_of_their_observations():
+    from tambridge.frontend.orb_features import FrameFeatures
+    from tambridge.frontend.slam_map import Keyframe, SlamMap
+
+    rng = np.random.default_rng(8)
+    slam_map = SlamMap()
+    centres = random_descriptors(rng, 2)
+    # Point 0 is first seen through an unusual view (30% of bits off); four later keyframes see it close to
+    # its centre descriptor, one of them exactly. Point 1 is seen once and keeps its descriptor.
+    first = flip_bits(rng, centres[:1], 0.3)
+    ids = slam_map.points.add(np.zeros((2, 3)) + [0.0, 0.0, 2.0], np.concatenate([first, centres[1:]]),
+                              np.zeros((2, 3), np.uint8), np.zeros(3), np.zeros(2, np.int64), 0, 1.2, 8)
+    views = [first, centres[:1]] + [flip_bits(rng, centres[:1], 0.05) for _ in range(3)]
+    for keyframe_id, descriptor in enumerate(views):
+        n = 2 if keyframe_id == 0 else 1
+        descriptors = np.concatenate([descriptor, centres[1:]])[:n]
+        features = FrameFeatures(np.zeros((n, 2)), np.zeros(n, np.int32), descriptors, np.ones(n), np.zeros((n, 3)),
+                                 np.zeros((n, 3), np.uint8))
+        slam_map.keyframes.append(Keyframe(keyframe_id, keyframe_id, 0.0, np.eye(4), features, ids[:n].copy(), 0))
+    slam_map.update_descriptors(ids)
+    np.testing.assert_array_equal(slam_map.points.descriptors[ids[0]], centres[0])
+    np.testing.assert_array_equal(slam_map.points.descriptors[ids[1]], centres[1])

@@ -18,6 +18,7 @@ import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
 from tambridge.frontend.reprojection import (
+    MIN_DEPTH_M,
     chi2_thresholds,
     huber_weights,
     pose_jacobian,
@@ -28,7 +29,6 @@ from tambridge.frontend.reprojection import (
 )
 from tambridge.geometry import exp_se3
 
-MIN_DEPTH_M = 1e-3
 # Once open3d or pycolmap is loaded (their OpenMP runtime), multi-threaded OpenBLAS factorisations run
 # hundreds of times slower on a 2-core machine (threads spin against each other); one thread is fast.
 _THREADPOOLS = ThreadpoolController()

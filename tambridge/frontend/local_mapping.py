@@ -74,6 +74,8 @@ def fuse_with_neighbours(slam_map: SlamMap, keyframe: Keyframe, camera: Camera, 
     neighbours = [slam_map.keyframes[i] for i in keyframe.best_covisible(FUSE_NEIGHBOURS)]
     neighbours = [k for k in neighbours if k.segment == keyframe.segment]
     if not neighbours:
+        if config.distinctive_descriptors:
+            slam_map.update_descriptors(slam_map.good_point_ids(keyframe))
         return
     olds, news = fuse_points(slam_map, keyframe, slam_map.points_of(neighbours), camera, config)
     own = slam_map.good_point_ids(keyframe)
@@ -85,6 +87,8 @@ def fuse_with_neighbours(slam_map: SlamMap, keyframe: Keyframe, camera: Camera, 
     slam_map.recount_observations()
     for k in [keyframe] + neighbours:
         slam_map.update_covisibility(k, config.covisibility_min_shared)
+    if config.distinctive_descriptors:
+        slam_map.update_descriptors(slam_map.points_of([keyframe] + neighbours))
 
 
 def cull_recent_points(slam_map: SlamMap, keyframe: Keyframe) -> int:

@@ -1,7 +1,8 @@
 """Loop closure over keyframes: bag-of-words retrieval, PnP verification, pose graph, map point fusion.
 
 1. Candidates: keyframes the database scores at least ``loop_min_score_ratio`` times the lowest score of
-   the new keyframe's covisible neighbours (ORB-SLAM's bar), that are not connected to it.
+   the new keyframe's covisible neighbours (ORB-SLAM's bar), that are not connected to it, and whose
+   covisibility group was also a candidate for the ``loop_consistency`` keyframes before (:class:`LoopConsistency`).
 2. Verification: :func:`~tambridge.frontend.map_matching.localise` of the new keyframe against the points of
    the candidate and its neighbours; at least ``loop_min_inliers`` inliers.
 3. Correction: a pose graph over all keyframes (consecutive-keyframe edges, strong covisibility edges, every
@@ -41,12 +42,37 @@ class LoopDetection:
     fix: PoseFix
 
 
+class LoopConsistency:
+    """ORB-SLAM's temporal consistency of loop candidates: a candidate is accepted once its covisibility group
+    (the candidate and its covisible keyframes) overlaps a group that was a candidate for each of the
+    ``required`` keyframes before (0 accepts every candidate). State: the groups of the last query with their
+    consistency counts."""
+
+    def __init__(self, required: int) -> None:
+        self.required = required
+        self.groups: list[tuple[set[int], int]] = []
+
+    def accept(self, candidate_groups: list[tuple[int, set[int]]]) -> list[int]:
+        """Candidates ``(keyframe id, group of keyframe ids)`` of the new keyframe, in score order -> accepted ids."""
+        current, accepted = [], []
+        for candidate_id, group in candidate_groups:
+            count = max((previous_count + 1 for previous, previous_count in self.groups if previous & group), default=0)
+            current.append((group, count))
+            if count >= self.required:
+                accepted.append(candidate_id)
+        self.groups = current
+        return accepted
+
+
 def detect_loop(
-    slam_map: SlamMap, keyframe: Keyframe, database: KeyframeDatabase, camera: Camera, config: OrbFrontendConfig
+    slam_map: SlamMap, keyframe: Keyframe, database: KeyframeDatabase, camera: Camera, config: OrbFrontendConfig,
+    consistency: LoopConsistency,
 ) -> LoopDetection | None:
-    """Look for a keyframe the new one revisits; verified geometrically, else None."""
+    """Look for a keyframe the new one revisits; consistent over consecutive keyframes and verified geometrically,
+    else None."""
     neighbours = keyframe.best_covisible(10)
     if not neighbours:
+        consistency.accept([])
         return None
     min_score = min(
         bow_score(keyframe.bow_words, keyframe.bow_weights, slam_map.keyframes[n].bow_words, slam_map.keyframes[n].bow_weights)
@@ -55,6 +81,7 @@ def detect_loop(
     ids, scores = database.query(keyframe.bow_words, keyframe.bow_weights)
     connected = set(keyframe.covisibility) | {keyframe.id}
     candidates = [int(i) for i, s in zip(ids, scores) if i not in connected and s >= config.loop_min_score_ratio * min_score]
+    candidates = consistency.accept([(c, {c} | set(slam_map.keyframes[c].covisibility)) for c in candidates])
     grid = build_keypoint_grid(keyframe.features.keypoints_px, camera.width, camera.height)
     for candidate_id in candidates[: config.loop_candidates]:
         candidate = slam_map.keyframes[candidate_id]

@@ -55,6 +55,44 @@ def hamming_matrix_reference(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (bits_a[:, None, :] != bits_b[None, :, :]).sum(axis=2).astype(np.int32)
 
 
+@numba.njit(cache=True, nogil=True)
+def _distinctive_indices(words: np.ndarray, group_start: np.ndarray) -> np.ndarray:
+    chosen = np.empty(group_start.shape[0] - 1, np.int64)
+    for g in range(group_start.shape[0] - 1):
+        start, stop = group_start[g], group_start[g + 1]
+        n = stop - start
+        best, best_median = start, 1 << 30
+        distances = np.empty(n, np.int64)
+        for i in range(start, stop):
+            for j in range(start, stop):
+                distances[j - start] = _hamming(words[i], words[j])
+            median = np.sort(distances)[(n - 1) // 2]
+            if median < best_median:
+                best, best_median = i, median
+        chosen[g] = best
+    return chosen
+
+
+def distinctive_indices(descriptors: np.ndarray, group_start: np.ndarray) -> np.ndarray:
+    """ORB-SLAM's distinctive descriptor: per group of descriptors, the one with the least median Hamming
+    distance to the group's others (ties: the first).
+
+    ``descriptors`` (O, 32) uint8 are grouped as rows ``group_start[g]:group_start[g + 1]`` (G + 1,), every group
+    non-empty; returns the chosen row per group (G,) int64.
+    """
+    return _distinctive_indices(as_words(descriptors), np.asarray(group_start, np.int64))
+
+
+def distinctive_indices_reference(descriptors: np.ndarray, group_start: np.ndarray) -> np.ndarray:
+    """Slow twin of :func:`distinctive_indices`, from :func:`hamming_matrix_reference`."""
+    chosen = []
+    for start, stop in zip(group_start[:-1], group_start[1:]):
+        distances = hamming_matrix_reference(descriptors[start:stop], descriptors[start:stop])
+        medians = np.sort(distances, axis=1)[:, (stop - start - 1) // 2]
+        chosen.append(start + int(np.argmin(medians)))
+    return np.array(chosen, np.int64)
+
+
 @dataclasses.dataclass
 class KeypointGrid:
     """Keypoints bucketed in square cells of ``cell_px``: keypoint ``order[start[c]:start[c + 1]]`` lie in cell c."""

@@ -7,6 +7,7 @@ import numba
 import numpy as np
 
 from tambridge.frontend.reprojection import (
+    MIN_DEPTH_M,
     chi2_thresholds,
     huber_weights,
     pose_jacobian,
@@ -15,9 +16,8 @@ from tambridge.frontend.reprojection import (
     residuals,
     row_weights,
 )
-from tambridge.geometry import exp_se3, transform_points
+from tambridge.geometry import exp_se3, orthonormalised, transform_points
 
-MIN_DEPTH_M = 1e-3
 
 
 def solve_pnp_ransac(
@@ -167,4 +167,5 @@ def refine_pose(
         inliers = chi2 <= thresholds
         if inliers.sum() < 10:
             break
-    return camera_from_world, inliers
+    # Frame poses chain (prior = motion @ previous pose): keep the rounding of exp products off SO(3) from growing.
+    return orthonormalised(camera_from_world), inliers

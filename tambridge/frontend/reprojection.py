@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+# Points nearer the camera plane than this (metres, camera z) are treated as behind it: no residual, chi2 = inf.
+MIN_DEPTH_M = 1e-3
 # chi-square 95% quantiles for 2 and 3 degrees of freedom: outlier thresholds (ORB-SLAM).
 CHI2_MONO = 5.991
 CHI2_RGBD = 7.815

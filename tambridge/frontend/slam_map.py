@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 
+from tambridge.frontend.matching import distinctive_indices
 from tambridge.frontend.orb_features import FrameFeatures
 from tambridge.geometry import inverse
 
@@ -153,6 +154,22 @@ class SlamMap:
             if hit.any():
                 out[keyframe.id] = np.flatnonzero(hit)
         return out
+
+    def update_descriptors(self, point_ids: np.ndarray) -> None:
+        """Give each of ``point_ids`` (K,) the most distinctive descriptor among its observations (ORB-SLAM's
+        ComputeDistinctiveDescriptors), so that matching compares against a typical view, not the first one."""
+        mask = np.zeros(self.points.count, bool)
+        mask[point_ids[self.points.good(point_ids)]] = True
+        seen = self.observers(mask)
+        if not seen:
+            return
+        observed = np.concatenate([self.keyframes[k].point_ids[i] for k, i in seen.items()])
+        descriptors = np.concatenate([self.keyframes[k].features.descriptors[i] for k, i in seen.items()])
+        order = np.argsort(observed, kind="stable")
+        observed, descriptors = observed[order], descriptors[order]
+        ids, group_start = np.unique(observed, return_index=True)
+        chosen = distinctive_indices(descriptors, np.append(group_start, len(observed)))
+        self.points.descriptors[ids] = descriptors[chosen]
 
     def update_covisibility(self, keyframe: Keyframe, min_shared: int) -> None:
         """Recount the points this keyframe shares with every other keyframe; keep pairs with >= ``min_shared``

@@ -63,9 +63,9 @@ class OrbFrontendConfig:
     # Keyframe insertion (ORB-SLAM2): tracked-point ratio to the reference keyframe, frames since the last one.
     keyframe_tracked_ratio: float = 0.75
     keyframe_min_frames: int = 8
-    keyframe_max_frames: int = 30
     min_new_points: int = 100
     covisibility_min_shared: int = 15
+    distinctive_descriptors: bool = True
     # Local BA over the new keyframe and its best covisible keyframes.
     local_ba_keyframes: int = 10
     local_ba_iterations: int = 6
@@ -76,6 +76,8 @@ class OrbFrontendConfig:
     loop_candidates: int = 3
     loop_min_score_ratio: float = 0.75
     loop_cooldown_keyframes: int = 10
+    # A loop candidate must have been one (or covisible with one) for this many consecutive keyframes before.
+    loop_consistency: int = 3
     global_ba: bool = True
     global_ba_iterations: int = 10
     # Keyframe work (fusion, local BA, loop closing) in a background thread; False: inline and deterministic.
