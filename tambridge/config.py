@@ -93,6 +93,10 @@ class MapperConfig:
     lr_log_radii: float = 1e-2
     lr_opacity_logits: float = 1e-1
     initial_opacity: float = 0.5
+    # Per-view affine colour (gain and bias per channel, Adam at lr_exposure) between the map and each view, so
+    # that auto exposure along a real sequence does not recolour the map (see gaussians.mapper.ViewExposure).
+    exposure_compensation: bool = True
+    lr_exposure: float = 1e-2
     # Densify where the border mask is below this (the paper's gamma) or the map lies this many median depth
     # residuals behind the observed depth.
     densify_silhouette: float = 0.99
