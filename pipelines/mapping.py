@@ -31,7 +31,7 @@ from tambridge.config import Config
 from tambridge.evaluation.rendering import RenderingScores, score_renders
 from tambridge.evaluation.trajectory import ate_rmse_m
 from tambridge.frontend.types import FrontendResult, KeyframeEvent
-from tambridge.gaussians.mapper import TORCH_THREADS, GaussianMap, ViewImages, backproject, compute_threads
+from tambridge.gaussians.mapper import TORCH_THREADS, GaussianMap, ViewExposure, ViewImages, backproject, compute_threads
 from tambridge.gaussians.ply import save_ply
 from tambridge.geometry import inverse, transform_points
 from tambridge.io.tum import Frame, RgbdSequence
@@ -44,13 +44,15 @@ OVERLAP_SAMPLES = 256
 """Pixels of the new view projected into earlier views to measure their overlap."""
 @dataclasses.dataclass
 class MappingView:
-    """A keyframe taken as a mapping view. ``keyframe_from_view`` (4x4) is the bridge's pose correction."""
+    """A keyframe taken as a mapping view. ``keyframe_from_view`` (4x4) is the bridge's pose correction;
+    ``exposure`` its colour transform (None: the mapper does not compensate exposure)."""
 
     keyframe_id: int
     frame_index: int
     keyframe_from_view: np.ndarray
     selection: Selection
     refinement: RefinementResult | None
+    exposure: ViewExposure | None = None
 
 
 def resize_frame(frame: Frame, scale: float) -> ViewImages:
@@ -87,6 +89,20 @@ class MappingStage:
     def view_pose(self, view: MappingView) -> np.ndarray:
         """Current 4x4 ``world_from_camera`` of a mapping view: its keyframe's pose times the bridge correction."""
         return self.keyframe_poses[view.keyframe_id] @ view.keyframe_from_view
+
+    def new_exposure(self) -> ViewExposure | None:
+        """The exposure of a new view: frozen at the identity for the first (it fixes the map's colour scale),
+        else starting from the latest view's; None when ``mapper.exposure_compensation`` is off."""
+        if not self.config.mapper.exposure_compensation:
+            return None
+        if not self.views:
+            return ViewExposure(frozen=True)
+        return ViewExposure(self.views[-1].exposure.parameters, self.config.mapper.lr_exposure)
+
+    @staticmethod
+    def exposures(views: list[MappingView]) -> list[ViewExposure | None] | None:
+        """The views' exposures for :meth:`GaussianMap.optimise` (None when not compensated)."""
+        return None if any(view.exposure is None for view in views) else [view.exposure for view in views]
 
     def update_keyframe_poses(self, keyframe_poses: dict[int, np.ndarray]) -> None:
         """Take the frontend's latest keyframe poses; the views' Gaussians move with their keyframes."""
@@ -125,6 +141,7 @@ class MappingStage:
         if not selection.selected:
             return
         images = self.images(event.frame_index, frame)
+        exposure = self.new_exposure()
         refinement = None
         keyframe_from_view = np.eye(4)
         if bridge.enabled and len(self.map):
@@ -134,11 +151,13 @@ class MappingStage:
                 in_view = self.map.visible_rows(self.camera, self.keyframe_poses[event.keyframe_id])
                 with torch.no_grad():
                     gaussians = self.map.gaussians(rows=in_view)
+                # The colour term compares map colours: the frame's, through the exposure it starts from.
+                observed_rgb = images.rgb if exposure is None else exposure.invert(images.rgb)
                 refinement = refine_pose(gaussians, self.camera, self.keyframe_poses[event.keyframe_id],
-                                         images.rgb, images.depth_m, event.points_world_m, keypoints, bridge,
+                                         observed_rgb, images.depth_m, event.points_world_m, keypoints, bridge,
                                          backend=self.config.mapper.backend)
                 keyframe_from_view = inverse(self.keyframe_poses[event.keyframe_id]) @ refinement.world_from_camera
-        view = MappingView(event.keyframe_id, event.frame_index, keyframe_from_view, selection, refinement)
+        view = MappingView(event.keyframe_id, event.frame_index, keyframe_from_view, selection, refinement, exposure)
         with self.run_log.stage("mapping"):
             self.map_view(view, images)
 
@@ -147,13 +166,13 @@ class MappingStage:
         world_from_camera = self.view_pose(view)
         self.map.set_anchor_pose(view.keyframe_id, world_from_camera)
         rendered = self.map.render(self.camera, world_from_camera) if len(self.map) else None
-        added = self.map.densify(view.keyframe_id, self.camera, images, rendered)
+        added = self.map.densify(view.keyframe_id, self.camera, images, rendered, view.exposure)
         window = self.overlapping_views(world_from_camera, images)
         self.views.append(view)
         views = [(world_from_camera, images)] + [(self.view_pose(v), self.images(v.frame_index)) for v in window]
         # Every other step on the new view, the others cycle through the earlier overlapping ones.
         schedule = [0 if k % 2 == 0 or not window else 1 + (k // 2) % len(window) for k in range(self.config.mapper.iterations)]
-        losses = self.map.optimise(self.camera, views, schedule)
+        losses = self.map.optimise(self.camera, views, schedule, self.exposures([view] + window))
         removed = self.map.prune(self.camera, world_from_camera)
         own = [loss for loss, index in zip(losses, schedule) if index == 0] or [float("nan")]
         logger.info("view %d (frame %d, %s): +%d -%d Gaussians -> %d, window %s, its loss %.4f -> %.4f", len(self.views) - 1,
@@ -193,7 +212,8 @@ class MappingStage:
             for start in range(0, len(order), chunk_size):
                 chunk = order[start : start + chunk_size]
                 views = [(self.view_pose(v), self.images(v.frame_index)) for v in chunk]
-                self.map.optimise(self.camera, views, list(range(len(chunk))) * self.config.mapper.final_iterations_per_view)
+                self.map.optimise(self.camera, views, list(range(len(chunk))) * self.config.mapper.final_iterations_per_view,
+                                  self.exposures(chunk))
             if self.views:
                 removed = self.map.prune(self.camera, self.view_pose(self.views[-1]))
                 logger.info("final refinement: %d steps per view over %d views, %d Gaussians pruned -> %d",
@@ -210,14 +230,16 @@ class MappingStage:
         poses = np.array(trajectory.world_from_camera, np.float64)
         if not self.views:
             return poses
-        view_frames = np.array([view.frame_index for view in self.views])
-        order = np.argsort(view_frames)
         for index in range(len(poses)):
-            position = np.searchsorted(view_frames[order], index, side="right") - 1
-            view = self.views[order[max(position, 0)]]
+            view = self.anchor_view(index)
             keyframe_pose = self.keyframe_poses[view.keyframe_id]
             poses[index] = self.view_pose(view) @ inverse(keyframe_pose) @ poses[index]
         return poses
+
+    def anchor_view(self, frame_index: int) -> MappingView:
+        """The mapping view a frame is rendered from: the latest at or before it (the first for earlier frames)."""
+        earlier = [view for view in self.views if view.frame_index <= frame_index]
+        return max(earlier, key=lambda view: view.frame_index) if earlier else min(self.views, key=lambda view: view.frame_index)
 
     def evaluate(self, rendering_poses: np.ndarray, frame_indices: list[int]) -> RenderingScores:
         """PSNR/SSIM/LPIPS of renders at full resolution from ``rendering_poses`` (N, 4, 4) against the input frames."""
@@ -225,7 +247,13 @@ class MappingStage:
 
         def pairs():
             for index in frame_indices:
-                rendered = self.map.render(camera, rendering_poses[index]).rgb.clamp(0.0, 1.0).numpy()
+                rendered = self.map.render(camera, rendering_poses[index]).rgb
+                # A frame takes the exposure of the view it is anchored to (estimated from mapping views only).
+                exposure = self.anchor_view(index).exposure if self.views else None
+                if exposure is not None:
+                    with torch.no_grad():
+                        rendered = exposure.apply(rendered)
+                rendered = rendered.clamp(0.0, 1.0).numpy()
                 yield index, rendered, self.sequence[index].rgb.astype(np.float32) / 255.0
 
         with self._threads():

@@ -57,7 +57,10 @@ class BridgeConfig:
     w_reprojection: float = 1.5
     w_colour: float = 0.5
     w_depth: float = 1.0
-    iterations: int = 20
+    # 10 rather than 20: with the ORB frontend the refinement keeps the frontend pose on 7-Scenes (the pixel
+    # reprojection term outweighs the rendering terms near the frontend's optimum), so the extra steps bought
+    # nothing but time.
+    iterations: int = 10
     lr_translation_m: float = 2e-3
     lr_rotation_rad: float = 2e-3
     # Depth gate: a pixel whose depth residual exceeds this many median residuals is an outlier.
@@ -93,6 +96,10 @@ class MapperConfig:
     lr_log_radii: float = 1e-2
     lr_opacity_logits: float = 1e-1
     initial_opacity: float = 0.5
+    # Per-view affine colour (gain and bias per channel, Adam at lr_exposure) between the map and each view, so
+    # that auto exposure along a real sequence does not recolour the map (see gaussians.mapper.ViewExposure).
+    exposure_compensation: bool = True
+    lr_exposure: float = 1e-2
     # Densify where the border mask is below this (the paper's gamma) or the map lies this many median depth
     # residuals behind the observed depth.
     densify_silhouette: float = 0.99

@@ -126,9 +126,11 @@ def refine_pose(
     for iteration in range(config.iterations + 1):
         pose_delta = torch.cat([rho, phi])
         rendered = render(gaussians, camera, start, pose_delta, backend=backend)
-        gates = pixel_gates(observed_depth_m, rendered.depth_m.detach(), rendered.silhouette.detach(),
-                            config.gamma, config.depth_outlier_factor)
         if iteration == 0:
+            # The gates are drawn once, at the frontend pose: gates redrawn at every step would let the pose
+            # lower the loss by moving hard pixels out of the gated set rather than by aligning the view.
+            gates = pixel_gates(observed_depth_m, rendered.depth_m.detach(), rendered.silhouette.detach(),
+                                config.gamma, config.depth_outlier_factor)
             gated_fraction = float(gates.sum()) / pixel_count
             if gated_fraction < config.min_gated_fraction and len(points) == 0:
                 return RefinementResult(np.asarray(world_from_camera, np.float64).copy(), float("nan"), float("nan"),

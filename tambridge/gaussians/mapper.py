@@ -105,6 +105,39 @@ def densify_mask(observed_depth_m: torch.Tensor, rendered: RenderOutput, silhoue
         return valid & (uncovered | behind)
 
 
+class ViewExposure:
+    """A mapping view's exposure: the per-channel affine map ``exp(log_gain) * C + bias`` from the map's colours
+    to what this view's camera recorded (auto exposure and white balance change along a real sequence).
+
+    Without it the map's colours follow whichever views were optimised last, and earlier parts of the sequence
+    are rendered too bright or too dark (7-Scenes redkitchen: the same table 13 % brighter after 100 frames).
+    The first view is ``frozen`` at the identity, which fixes the map's colour scale (gain and colours are
+    otherwise ambiguous). ``parameters`` (2, 3): log gains, biases; optimised with Adam at ``learning_rate``.
+    """
+
+    def __init__(self, parameters: torch.Tensor | None = None, learning_rate: float = 0.0, frozen: bool = False) -> None:
+        initial = torch.zeros((2, 3)) if parameters is None else parameters.detach().clone()
+        assert initial.shape == (2, 3), initial.shape
+        self.parameters = initial.requires_grad_(not frozen)
+        self.frozen = frozen
+        self._optimiser = None if frozen else torch.optim.Adam([self.parameters], lr=learning_rate, eps=ADAM_EPS)
+
+    def apply(self, rgb: torch.Tensor) -> torch.Tensor:
+        """(H, W, 3) map colours -> this view's colours (differentiable in both)."""
+        return rgb * torch.exp(self.parameters[0]) + self.parameters[1]
+
+    def invert(self, rgb: torch.Tensor) -> torch.Tensor:
+        """(M, 3) colours seen by this view -> map colours (no gradient)."""
+        with torch.no_grad():
+            return (rgb - self.parameters[1]) * torch.exp(-self.parameters[0])
+
+    def step(self) -> None:
+        """One Adam step on the gradient the last backward pass left (none when frozen), then clear it."""
+        if self._optimiser is not None and self.parameters.grad is not None:
+            self._optimiser.step()
+            self._optimiser.zero_grad(set_to_none=True)
+
+
 class GaussianMap:
     """Isotropic Gaussians anchored to mapping views, with their Adam state.
 
@@ -225,12 +258,13 @@ class GaussianMap:
         self._steps = self._steps[kept]
         self._anchor_rows = self._anchor_rows[kept]
 
-    def densify(self, anchor_id: int, camera: Camera, images: ViewImages, rendered: RenderOutput | None) -> int:
+    def densify(self, anchor_id: int, camera: Camera, images: ViewImages, rendered: RenderOutput | None,
+                exposure: ViewExposure | None = None) -> int:
         """Add a Gaussian at every pixel of the view that the map does not explain (all valid pixels when empty).
 
         ``anchor_id`` is the view (its pose set already); ``rendered`` the map rendered at that pose (None: empty map).
         A new Gaussian sits on the back-projected pixel with a radius of one pixel, ``r = d / f`` (eq. 8), and the
-        pixel's colour. Returns how many were added.
+        pixel's colour (in map colours through ``exposure`` when given). Returns how many were added.
         """
         if rendered is None:
             mask = images.depth_m > 0
@@ -238,7 +272,8 @@ class GaussianMap:
             mask = densify_mask(images.depth_m, rendered, self.config.densify_silhouette, self.config.densify_depth_factor)
         points = backproject(images.depth_m, camera, mask)
         focal = 0.5 * (camera.fx + camera.fy)
-        self.add(anchor_id, points, images.rgb[mask], points[:, 2] / focal)
+        colours = images.rgb[mask] if exposure is None else exposure.invert(images.rgb[mask]).clamp(0.0, 1.0)
+        self.add(anchor_id, points, colours, points[:, 2] / focal)
         return int(points.shape[0])
 
     def prune(self, camera: Camera, world_from_camera: np.ndarray) -> int:
@@ -260,13 +295,16 @@ class GaussianMap:
 
     # ---- optimisation ---------------------------------------------------------------------------------------
 
-    def optimise(self, camera: Camera, views: Sequence[tuple[np.ndarray, ViewImages]], schedule: Sequence[int]) -> list[float]:
+    def optimise(self, camera: Camera, views: Sequence[tuple[np.ndarray, ViewImages]], schedule: Sequence[int],
+                 exposures: Sequence[ViewExposure | None] | None = None) -> list[float]:
         """Adam steps of the map loss with the poses fixed: step k renders ``views[schedule[k]]``; returns the losses.
 
         ``views`` are ``(world_from_camera (4, 4), images)`` pairs at ``camera``'s resolution. Only the Gaussians
         that can touch one of the views take part: they are gathered once into contiguous tensors with their Adam
         state, stepped, and scattered back, so the cost follows the views, not the size of the map. A Gaussian
         that gets no gradient in a step (outside that step's view) does not move and its Adam state is unchanged.
+        ``exposures`` (one per view, or None) maps the render to the view's exposure before the loss; those not
+        frozen are optimised along with the Gaussians.
         """
         if not schedule or len(self) == 0:
             return []
@@ -284,11 +322,15 @@ class GaussianMap:
             means_world = torch.einsum("nij,nj->ni", rotations, leaves["means_anchor_m"]) + translations
             gaussians = GaussianTensors(means_world, leaves["rgb"], leaves["log_radii_m"], leaves["opacity_logits"])
             rendered = render(gaussians, camera, world_from_camera, backend=self.config.backend)
-            loss = map_loss(rendered.rgb, rendered.depth_m, images.rgb, images.depth_m,
+            exposure = exposures[view_index] if exposures is not None else None
+            rendered_rgb = rendered.rgb if exposure is None else exposure.apply(rendered.rgb)
+            loss = map_loss(rendered_rgb, rendered.depth_m, images.rgb, images.depth_m,
                             self.config.zeta, self.config.w_depth, self.config.w_colour)
             loss.backward()
             params = {name: leaf.detach() for name, leaf in leaves.items()}
             steps = self._adam_step(params, {name: leaf.grad for name, leaf in leaves.items()}, exp_avg, exp_avg_sq, steps)
+            if exposure is not None:
+                exposure.step()
             losses.append(float(loss.detach()))
         for name in FIELDS:
             self._params[name][rows] = params[name]
