@@ -316,12 +316,13 @@ def _forward(entry_rows, tile_starts, tiles_x, tile_px, background, out_rgb, out
 
 
 def composite_forward(
-    bins: TileBins, width: int, height: int, background_rgb: np.ndarray
+    bins: TileBins, width: int, height: int, background_rgb: np.ndarray, dtype: type = np.float64
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, ForwardState]:
-    """Composite binned Gaussians; returns rgb (H, W, 3), depth (H, W), silhouette (H, W) float64 and the backward state."""
-    out_rgb = np.empty((height, width, 3))
-    out_depth = np.empty((height, width))
-    out_silhouette = np.empty((height, width))
+    """Composite binned Gaussians; returns rgb (H, W, 3), depth (H, W), silhouette (H, W) of ``dtype`` (computed in
+    float64, rounded once when stored) and the backward state."""
+    out_rgb = np.empty((height, width, 3), dtype)
+    out_depth = np.empty((height, width), dtype)
+    out_silhouette = np.empty((height, width), dtype)
     out_transmittance = np.empty((height, width))
     out_contributors = np.empty((height, width), np.int32)
     _forward(
@@ -416,13 +417,11 @@ def _backward(entry_rows, tile_starts, tiles_x, tile_px, background, transmittan
 @numba.njit(parallel=True, cache=True)
 def _sum_entries(order, slot_starts, slot_entries, entry_grads, grads):
     for k in numba.prange(order.size):
-        i = order[k]
         for column in range(PACKED_COLUMNS):
-            grads[i, column] = 0.0
-        for slot in range(slot_starts[k], slot_starts[k + 1]):
-            entry = slot_entries[slot]
-            for column in range(PACKED_COLUMNS):
-                grads[i, column] += entry_grads[entry, column]
+            total = 0.0  # float64 whatever the dtype of grads
+            for slot in range(slot_starts[k], slot_starts[k + 1]):
+                total += entry_grads[slot_entries[slot], column]
+            grads[order[k], column] = total
 
 
 def composite_backward(
@@ -432,14 +431,16 @@ def composite_backward(
     grad_rgb: np.ndarray,
     grad_depth: np.ndarray,
     grad_silhouette: np.ndarray,
+    dtype: type = np.float64,
 ) -> np.ndarray:
-    """Gradients (N, PACKED_COLUMNS) float64 of the loss w.r.t. the packed columns, given its gradients w.r.t.
-    the rendered rgb (H, W, 3), depth (H, W) and silhouette (H, W), all float64."""
+    """Gradients (N, PACKED_COLUMNS) of ``dtype`` (summed in float64, rounded once) of the loss w.r.t. the packed
+    columns, given its gradients w.r.t. the rendered rgb (H, W, 3), depth (H, W) and silhouette (H, W), float32 or
+    float64 (read as float64)."""
     entry_grads = np.empty((bins.slot_entries.size, PACKED_COLUMNS))  # _backward writes every row
     _backward(
         bins.entry_rows, bins.tile_starts, bins.tiles_x, TILE_PX, np.asarray(background_rgb, np.float64),
         state.transmittance_final, state.contributors, grad_rgb, grad_depth, grad_silhouette, entry_grads,
     )
-    grads = np.zeros((bins.gaussian_count, PACKED_COLUMNS))  # culled Gaussians keep zeros
+    grads = np.zeros((bins.gaussian_count, PACKED_COLUMNS), dtype)  # culled Gaussians keep zeros
     _sum_entries(bins.order, bins.slot_starts, bins.slot_entries, entry_grads, grads)
     return grads
