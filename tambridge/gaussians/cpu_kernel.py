@@ -108,17 +108,16 @@ _CULLED = np.iinfo(np.int64).max
 
 
 @numba.njit(parallel=True, cache=True)
-def _tile_boxes_and_keys(packed, depth_bits, width, height, tile_px, boxes, keys):
-    """Tile box (N, 4) int32 of every Gaussian and its depth key ``depth_bits << 32 | index`` (``_CULLED`` if culled);
-    the keys are unique, so sorting them gives the front-to-back order with ties in index order."""
+def _depth_keys(packed, depth_bits, width, height, tile_px, keys):
+    """Depth key ``depth_bits << 32 | index`` of every Gaussian (N,), ``_CULLED`` if it is culled; the keys are
+    unique, so sorting them gives the front-to-back order with ties in index order."""
     for i in numba.prange(packed.shape[0]):
-        tx0, tx1, ty0, ty1 = _tile_box(packed[i], width, height, tile_px)
-        boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = tx0, tx1, ty0, ty1
+        tx0, tx1, _, _ = _tile_box(packed[i], width, height, tile_px)
         keys[i] = (np.int64(depth_bits[i]) << 32) | i if tx0 <= tx1 else _CULLED
 
 
 @numba.njit(parallel=True, cache=True)
-def _fill_tiles(packed, boxes, sorted_keys, visible_count, tiles_x, tiles_y, chunk_count):
+def _fill_tiles(packed, sorted_keys, visible_count, width, height, tile_px, tiles_x, tiles_y, chunk_count):
     """Stable parallel counting sort by tile of the visible Gaussians, taken in depth order (``sorted_keys``).
 
     The depth order is cut into chunks; each chunk counts its entries per tile, prefix sums give each chunk its own
@@ -130,7 +129,7 @@ def _fill_tiles(packed, boxes, sorted_keys, visible_count, tiles_x, tiles_y, chu
     chunk_size = -(-visible_count // chunk_count)
     order = np.empty(visible_count, np.int64)
     sorted_rows = np.empty((visible_count, PACKED_COLUMNS), packed.dtype)
-    sorted_boxes = np.empty((visible_count, 4), np.int32)
+    sorted_boxes = np.empty((visible_count, 4), np.int32)  # recomputed: cheaper than a second random read
     chunk_tile_counts = np.zeros((chunk_count, tile_count), np.int64)
     slot_starts = np.empty(visible_count + 1, np.int64)
     for chunk in numba.prange(chunk_count):
@@ -141,9 +140,9 @@ def _fill_tiles(packed, boxes, sorted_keys, visible_count, tiles_x, tiles_y, chu
             order[k] = i
             for column in range(PACKED_COLUMNS):
                 sorted_rows[k, column] = packed[i, column]
-            for side in range(4):
-                sorted_boxes[k, side] = boxes[i, side]
         for k in range(first, last):
+            tx0, tx1, ty0, ty1 = _tile_box(sorted_rows[k], width, height, tile_px)
+            sorted_boxes[k, 0], sorted_boxes[k, 1], sorted_boxes[k, 2], sorted_boxes[k, 3] = tx0, tx1, ty0, ty1
             slot_starts[k + 1] = (sorted_boxes[k, 1] - sorted_boxes[k, 0] + 1) * (sorted_boxes[k, 3] - sorted_boxes[k, 2] + 1)
             for ty in range(sorted_boxes[k, 2], sorted_boxes[k, 3] + 1):
                 for tx in range(sorted_boxes[k, 0], sorted_boxes[k, 1] + 1):
@@ -186,12 +185,12 @@ def bin_tiles(packed: np.ndarray, width: int, height: int) -> TileBins:
     # Positive float32 bit patterns sort like the numbers (the only depths kept are > NEAR_PLANE_M > 0).
     depth_bits = np.ascontiguousarray(packed[:, DEPTH]).astype(np.float32).view(np.int32)
     tiles_x, tiles_y = -(-width // TILE_PX), -(-height // TILE_PX)
-    boxes, keys = np.empty((count, 4), np.int32), np.empty(count, np.int64)
-    _tile_boxes_and_keys(packed, depth_bits, width, height, TILE_PX, boxes, keys)
+    keys = np.empty(count, np.int64)
+    _depth_keys(packed, depth_bits, width, height, TILE_PX, keys)
     keys.sort()  # numpy's vectorised sort: ~2x numba's, and unique keys make stability moot
     visible_count = int(np.searchsorted(keys, _CULLED))
     entry_rows, slot_entries, tile_starts, order, slot_starts = _fill_tiles(
-        packed, boxes, keys, visible_count, tiles_x, tiles_y, 4 * numba.get_num_threads()
+        packed, keys, visible_count, width, height, TILE_PX, tiles_x, tiles_y, 4 * numba.get_num_threads()
     )
     return TileBins(entry_rows, slot_entries, tile_starts, tiles_x, order, slot_starts, count)
 
