@@ -56,13 +56,14 @@ def peak_rss_mb(command: list[str], log_path: Path, samples: list | None = None)
     started = time.perf_counter()
     with open(log_path, "w") as log:
         child = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-        if samples is not None:
-            while child.poll() is None:
-                rss = _rss_mb(child.pid)
-                if rss is not None:
-                    samples.append((round(time.perf_counter() - started, 1), round(rss, 1)))
-                time.sleep(RSS_SAMPLE_S)
-        _, status, usage = os.wait4(child.pid, 0)
+        # wait4 without blocking between samples: polling through Popen would reap the child and lose its usage.
+        pid, status, usage = os.wait4(child.pid, 0 if samples is None else os.WNOHANG)
+        while pid == 0:
+            rss = _rss_mb(child.pid)
+            if rss is not None:
+                samples.append((round(time.perf_counter() - started, 1), round(rss, 1)))
+            time.sleep(RSS_SAMPLE_S)
+            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
     # Linux reports ru_maxrss in KiB.
     return os.waitstatus_to_exitcode(status), usage.ru_maxrss / 1024.0, time.perf_counter() - started
 
