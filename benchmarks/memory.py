@@ -5,9 +5,11 @@
 
 Every length is one ``reconstruct`` run (default preset, mapping on, mesh on) in its own process, so each peak is
 that process's own ``ru_maxrss`` (read with wait4), not the largest of several runs. The map's size comes from the
-run's metrics.json (Gaussians, keyframes, mapping views, sparse map points are not in it). If memory followed the
-frames, the 700-frame run would need about 7x the 100-frame run's growth over the interpreter's baseline; if it
-follows the map, the growth tracks the Gaussian count. Prints a table and writes benchmarks/results/memory.json.
+run's metrics.json (Gaussians, keyframes, mapping views), and so does the peak of the online part alone
+(``peak_memory_mb_tracking``: tracking and mapping every frame, before exports and evaluation). If memory followed
+the frames, the 700-frame run would need about 7x the 100-frame run's growth over the baseline (a process that only
+imports what a run imports); if it follows the map, the growth tracks the Gaussian count. Resident memory is also
+sampled every RSS_SAMPLE_S seconds into the JSON. Prints a table and writes benchmarks/results/memory.json.
 """
 
 from __future__ import annotations
@@ -31,14 +33,37 @@ DEFAULT_SEQUENCE = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699"
 DEFAULT_FRAMES = (100, 300, 700)
 BASELINE_CODE = "import cli, pipelines.reconstruct"
 """What the baseline process imports: everything a reconstruct run loads before its first frame."""
+RSS_SAMPLE_S = 2.0
+"""Interval of the resident-memory samples kept in the JSON (the peak itself comes from wait4, not from them)."""
 
 
-def peak_rss_mb(command: list[str], log_path: Path) -> tuple[int, float, float]:
-    """Run ``command`` in a child process (output to ``log_path``); returns (exit status, peak RSS MiB, seconds)."""
+def _rss_mb(pid: int) -> float | None:
+    """Current resident memory of a process in MiB (Linux /proc), None once it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except (FileNotFoundError, ProcessLookupError, ValueError):
+        return None
+    return None
+
+
+def peak_rss_mb(command: list[str], log_path: Path, samples: list | None = None) -> tuple[int, float, float]:
+    """Run ``command`` in a child process (output to ``log_path``); returns (exit status, peak RSS MiB, seconds).
+
+    ``samples``, when given, gets ``(seconds since start, RSS MiB)`` every RSS_SAMPLE_S while the child runs.
+    """
     started = time.perf_counter()
     with open(log_path, "w") as log:
         child = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-        _, status, usage = os.wait4(child.pid, 0)
+        # wait4 without blocking between samples: polling through Popen would reap the child and lose its usage.
+        pid, status, usage = os.wait4(child.pid, 0 if samples is None else os.WNOHANG)
+        while pid == 0:
+            rss = _rss_mb(child.pid)
+            if rss is not None:
+                samples.append((round(time.perf_counter() - started, 1), round(rss, 1)))
+            time.sleep(RSS_SAMPLE_S)
+            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
     # Linux reports ru_maxrss in KiB.
     return os.waitstatus_to_exitcode(status), usage.ru_maxrss / 1024.0, time.perf_counter() - started
 
@@ -48,8 +73,10 @@ def run_length(sequence: Path, frames: int, out: Path, extra: list[str]) -> dict
     command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(sequence), "-o", str(out), "--quiet",
                "--max-frames", str(frames), *extra]
     out.parent.mkdir(parents=True, exist_ok=True)
-    status, peak_mb, seconds = peak_rss_mb(command, out.parent / f"{out.name}.log")
-    row = {"frames": frames, "exit_status": status, "peak_memory_mb": peak_mb, "wall_seconds": seconds, "extra": extra}
+    samples: list[tuple[float, float]] = []
+    status, peak_mb, seconds = peak_rss_mb(command, out.parent / f"{out.name}.log", samples)
+    row = {"frames": frames, "exit_status": status, "peak_memory_mb": peak_mb, "wall_seconds": seconds, "extra": extra,
+           "rss_samples_s_mb": samples}
     metrics_path = out / "metrics.json"
     if metrics_path.is_file():
         metrics = json.loads(metrics_path.read_text())

@@ -10,7 +10,10 @@ field requiring gradients and back-propagates an L1 loss on colour and depth aga
 
 Each (size, backend) runs in its own process, so its peak memory is its own: the growth of the process's peak RSS
 (VmHWM, reset after the scene is built) over its RSS just before the first render. Wall time is the median over repeats after one warm-up;
-cpu_s is the process CPU time of the same calls (wall x cores used, when the machine is not shared).
+cpu_s is the process CPU time of the same calls (wall x cores used, when the machine is not shared). For the CPU
+kernel, every row also has the wall and CPU time per stage (projection forward in torch, binning, forward compositing,
+reverse pass, per-Gaussian gradient sum, and the rest: the projection's backward, packing, the loss, autograd); the
+CPU times are the figures to compare when other processes share the cores.
 The torch reference is :func:`tambridge.gaussians.reference.composite_reference` tiled by 16 px (per-tile
 culling is exact; the untiled form would need an N x H x W tensor: 15 GB and more at these sizes).
 
@@ -104,25 +107,33 @@ def measure(data: str, count: int, resolution: tuple[int, int], backend: str, mo
     import numpy as np
     import torch
 
-    from tambridge.gaussians import GaussianTensors, cpu_kernel, render
+    from tambridge.gaussians import GaussianTensors, cpu_kernel, rasterizer, render
     from tambridge.gaussians.model import camera_frame_means, project_to_screen
     from tambridge.gaussians.reference import composite_reference
 
     gaussians, camera, world_from_camera, target_rgb, target_depth = build_scene(Path(data), count, resolution[0])
     background = torch.zeros(3)
     stage_s: dict[str, float] = {}
+    stage_cpu_s: dict[str, float] = {}
     if backend == "cpu":
-        for name in ("bin_tiles", "composite_forward", "composite_backward"):
-            original = getattr(cpu_kernel, name)
+        # Python-level entry points of each phase, looked up at call time by their callers, so wrapping them here
+        # times them inside render(): projection (torch forward only; its backward is in torch_and_glue), binning,
+        # compositing, the reverse pass and the per-Gaussian gradient reduction.
+        stages = [(rasterizer, "camera_frame_means", "projection"), (rasterizer, "project_to_screen", "projection")]
+        stages += [(cpu_kernel, "bin_tiles", "binning"), (cpu_kernel, "composite_forward", "forward")]
+        stages += [(cpu_kernel, "_backward", "backward"), (cpu_kernel, "_sum_entries", "gradient_sum")]
+        for module, name, stage in stages:
+            original = getattr(module, name)
 
             @functools.wraps(original)
-            def timed(*args, _original=original, _name=name, **kwargs):
-                start = time.perf_counter()
+            def timed(*args, _original=original, _stage=stage, **kwargs):
+                start, start_cpu = time.perf_counter(), time.process_time()
                 result = _original(*args, **kwargs)
-                stage_s[_name] = stage_s.get(_name, 0.0) + time.perf_counter() - start
+                stage_s[_stage] = stage_s.get(_stage, 0.0) + time.perf_counter() - start
+                stage_cpu_s[_stage] = stage_cpu_s.get(_stage, 0.0) + time.process_time() - start_cpu
                 return result
 
-            setattr(cpu_kernel, name, timed)
+            setattr(module, name, timed)
 
     def render_once(splats: GaussianTensors):
         if backend == "cpu":
@@ -150,6 +161,7 @@ def measure(data: str, count: int, resolution: tuple[int, int], backend: str, mo
     if backend == "cpu":
         step(gaussians)  # warm-up at full size (allocator pools); the torch reference takes seconds, once is enough
     stage_s.clear()
+    stage_cpu_s.clear()
     walls, cpus = [], []
     for _ in range(repeats):
         wall, cpu = time.perf_counter(), time.process_time()
@@ -170,9 +182,11 @@ def measure(data: str, count: int, resolution: tuple[int, int], backend: str, mo
         "threads": {"numba": numba.get_num_threads(), "torch": torch.get_num_threads()},
     }
     if stage_s:
+        # The rest: the projection's backward in torch, packing, conversions, the loss, autograd.
         result["stage_s_mean"] = {name: seconds / repeats for name, seconds in stage_s.items()}
-        # The rest: projection and its backward in torch, packing, conversions, autograd.
         result["stage_s_mean"]["torch_and_glue"] = float(np.mean(walls)) - sum(stage_s.values()) / repeats
+        result["stage_cpu_s_mean"] = {name: seconds / repeats for name, seconds in stage_cpu_s.items()}
+        result["stage_cpu_s_mean"]["torch_and_glue"] = float(np.mean(cpus)) - sum(stage_cpu_s.values()) / repeats
     return result
 
 
@@ -234,6 +248,14 @@ def main() -> None:
             f"{row['wall_s_median']:>8.4f} {row['cpu_s_median']:>8.3f} {1 / row['wall_s_median']:>7.1f} "
             f"{row['peak_memory_mb']:>8.0f} {speedup:>7}"
         )
+    stages = ("projection", "binning", "forward", "backward", "gradient_sum", "torch_and_glue")
+    header = f"{'resolution':<10} {'gaussians':>9} {'mode':<16} " + " ".join(f"{stage:>14}" for stage in stages)
+    print("\nCPU kernel, CPU time per stage (ms; wall time per stage is in the JSON)\n" + header + "\n" + "-" * len(header))
+    for row in rows:
+        if row["backend"] == "cpu":
+            times = row["stage_cpu_s_mean"]
+            cells = " ".join(f"{1000 * times[stage]:>14.1f}" if stage in times else f"{'-':>14}" for stage in stages)
+            print(f"{row['resolution']:<10} {row['gaussians']:>9} {row['mode']:<16} {cells}")
     for row in skipped:
         print(f"skipped: {row['resolution']} {row['gaussians']} {row['mode']}: {row['reason']}")
     print("dense (untiled) reference: skipped at every size, an N x H x W float32 tensor is >= 15 GB at 50k / 320x240")

@@ -8,8 +8,9 @@ import torch
 
 from tambridge.camera import Camera
 from tambridge.geometry import exp_se3, look_at
-from tambridge.gaussians import GaussianTensors, render
+from tambridge.gaussians import GaussianTensors, ScreenGaussians, cpu_kernel, render
 from tambridge.gaussians.model import camera_frame_means, project_to_screen
+from tambridge.gaussians.rasterizer import composite_cpu
 from tambridge.gaussians.reference import composite_reference
 
 FIELDS = ("means_m", "rgb", "log_radii_m", "opacity_logits")
@@ -203,6 +204,64 @@ def test_tiled_reference_equals_dense_reference():
     tiled = composite_reference(screen, camera.width, camera.height, background, tile_px=16)
     for name in ("rgb", "depth_m", "silhouette"):
         torch.testing.assert_close(getattr(tiled, name), getattr(dense, name), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_tile_lists_hold_the_overlapping_gaussians_front_to_back(dtype):
+    """Every tile lists exactly the Gaussians whose pixel box overlaps it, by float32 depth, ties in index order
+    (many exact ties, and float64 depths that differ but round to the same float32)."""
+    width, height, count = 70, 45, 3000
+    rng = np.random.default_rng(4)
+    packed = np.zeros((count, cpu_kernel.PACKED_COLUMNS), dtype)
+    packed[:, cpu_kernel.U] = rng.uniform(-10, width + 10, count)
+    packed[:, cpu_kernel.V] = rng.uniform(-10, height + 10, count)
+    packed[:, cpu_kernel.RADIUS] = rng.uniform(0.2, 6.0, count)
+    depths = rng.choice([-1.0, 0.5, 1.0, 1.0 + 1e-12, 2.0], count) + rng.integers(0, 3, count) * 0.25
+    packed[:, cpu_kernel.DEPTH] = depths
+    packed[:, cpu_kernel.OPACITY] = 0.5
+    bins = cpu_kernel.bin_tiles(packed, width, height)
+    entry_gaussian = np.empty(bins.tile_starts[-1], np.int64)
+    for k, gaussian in enumerate(bins.order):
+        entry_gaussian[bins.slot_entries[bins.slot_starts[k] : bins.slot_starts[k + 1]]] = gaussian
+    depth32 = packed[:, cpu_kernel.DEPTH].astype(np.float32)
+    reach = 3.0 * packed[:, cpu_kernel.RADIUS].astype(np.float64) + cpu_kernel.BOX_SLACK_PX
+    u, v = packed[:, cpu_kernel.U].astype(np.float64), packed[:, cpu_kernel.V].astype(np.float64)
+    # Pixel box (clipped to the image) of every Gaussian, brute force.
+    x0, x1 = np.maximum(np.ceil(u - reach), 0), np.minimum(np.floor(u + reach), width - 1)
+    y0, y1 = np.maximum(np.ceil(v - reach), 0), np.minimum(np.floor(v + reach), height - 1)
+    kept = (depth32 > 0.01) & (x0 <= x1) & (y0 <= y1)
+    tile = cpu_kernel.TILE_PX
+    for index in range(bins.tile_starts.size - 1):
+        tx, ty = index % bins.tiles_x, index // bins.tiles_x
+        listed = entry_gaussian[bins.tile_starts[index] : bins.tile_starts[index + 1]]
+        overlapping = kept & (x1 >= tx * tile) & (x0 <= tx * tile + tile - 1) & (y1 >= ty * tile) & (y0 <= ty * tile + tile - 1)
+        assert sorted(listed) == list(np.flatnonzero(overlapping)), index
+        expected = sorted(listed, key=lambda gaussian: (depth32[gaussian], gaussian))
+        assert list(listed) == expected, index
+        np.testing.assert_array_equal(bins.entry_rows[bins.tile_starts[index] : bins.tile_starts[index + 1]], packed[listed])
+    assert len(set(bins.order)) == kept.sum() and kept[bins.order].all()
+
+
+def test_float32_gaussians_composite_as_their_float64_values_rounded_once():
+    """float32 inputs are stored as float32 and computed in float64: maps and gradients equal the float64 path's,
+    rounded to float32, bit for bit."""
+    camera = camera_of(40, 30)
+    gaussians = random_gaussians(600, seed=12, opacity_logit_mean=1.0)
+    screen32 = project_to_screen(gaussians, camera_frame_means(gaussians, torch.eye(4, dtype=torch.float64)), camera)
+    fields = ("means_px", "radii_px", "depths_m", "opacity", "rgb")
+    generator = torch.Generator().manual_seed(0)
+    weights = [torch.randn(shape, generator=generator) for shape in ((30, 40, 3), (30, 40), (30, 40))]
+    results = {}
+    for dtype in (torch.float32, torch.float64):
+        screen = ScreenGaussians(**{name: getattr(screen32, name).detach().to(dtype).requires_grad_(True) for name in fields})
+        out = composite_cpu(screen, camera.width, camera.height, torch.tensor((0.25, 0.5, 0.125), dtype=dtype))  # exact in both
+        maps = (out.rgb, out.depth_m, out.silhouette)
+        loss = sum((image * weight.to(dtype)).sum() for image, weight in zip(maps, weights))
+        grads = torch.autograd.grad(loss, [getattr(screen, name) for name in fields])
+        results[dtype] = [tensor.detach() for tensor in maps + tuple(grads)]
+    for single, double in zip(results[torch.float32], results[torch.float64]):
+        assert single.dtype == torch.float32
+        torch.testing.assert_close(single, double.to(torch.float32), atol=0, rtol=0)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat runs on CUDA only")

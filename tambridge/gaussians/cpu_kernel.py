@@ -52,16 +52,19 @@ class TileBins:
     """Per-tile front-to-back lists of the visible Gaussians among N.
 
     Tile t owns entries ``tile_starts[t]:tile_starts[t + 1]`` of ``entry_rows`` (E, PACKED_COLUMNS), each a copy of
-    its Gaussian's packed row (dtype of the packed input). Gaussian i is listed as the entries
-    ``slot_entries[slot_starts[i]:slot_starts[i + 1]]`` ((E,) and (N + 1,)), one per tile it overlaps (none when
-    culled): the backward pass writes per-entry gradients in entry order, and each Gaussian gathers its own.
+    its Gaussian's packed row (dtype of the packed input). ``order`` (M,) lists the visible Gaussians front to back;
+    the k-th of them is listed as the entries ``slot_entries[slot_starts[k]:slot_starts[k + 1]]`` ((E,) and
+    (M + 1,)), one per tile it overlaps: the backward pass writes per-entry gradients in entry order, and each
+    Gaussian gathers its own.
     """
 
     entry_rows: np.ndarray
     slot_entries: np.ndarray
     tile_starts: np.ndarray
     tiles_x: int
+    order: np.ndarray
     slot_starts: np.ndarray
+    gaussian_count: int
 
 
 @dataclasses.dataclass
@@ -105,38 +108,48 @@ _CULLED = np.iinfo(np.int64).max
 
 
 @numba.njit(parallel=True, cache=True)
-def _tile_boxes_and_keys(packed, depth_bits, width, height, tile_px, boxes, keys):
-    """Tile box (N, 4) int32 of every Gaussian and its depth key ``depth_bits << 32 | index`` (``_CULLED`` if culled);
-    the keys are unique, so sorting them gives the front-to-back order with ties in index order."""
+def _depth_keys(packed, depth_bits, width, height, tile_px, keys):
+    """Depth key ``depth_bits << 32 | index`` of every Gaussian (N,), ``_CULLED`` if it is culled; the keys are
+    unique, so sorting them gives the front-to-back order with ties in index order."""
     for i in numba.prange(packed.shape[0]):
-        tx0, tx1, ty0, ty1 = _tile_box(packed[i], width, height, tile_px)
-        boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = tx0, tx1, ty0, ty1
+        tx0, tx1, _, _ = _tile_box(packed[i], width, height, tile_px)
         keys[i] = (np.int64(depth_bits[i]) << 32) | i if tx0 <= tx1 else _CULLED
 
 
 @numba.njit(parallel=True, cache=True)
-def _fill_tiles(packed, boxes, sorted_keys, visible_count, tiles_x, tiles_y, chunk_count):
+def _fill_tiles(packed, sorted_keys, visible_count, width, height, tile_px, tiles_x, tiles_y, chunk_count):
     """Stable parallel counting sort by tile of the visible Gaussians, taken in depth order (``sorted_keys``).
 
     The depth order is cut into chunks; each chunk counts its entries per tile, prefix sums give each chunk its own
     write cursor in every tile after those of the chunks in front of it, so every tile list stays front to back.
-    Memory-bound: rows are read in random order and appended to many tile lists at once (a separate gather pass
-    into depth order first was slower).
+    Returns entry_rows, slot_entries, tile_starts, order (M,) (the visible Gaussians front to back) and
+    slot_starts (M + 1,) (the k-th of them is listed as entries ``slot_entries[slot_starts[k]:slot_starts[k + 1]]``).
     """
-    count = packed.shape[0]
     tile_count = tiles_x * tiles_y
     chunk_size = -(-visible_count // chunk_count)
+    order = np.empty(visible_count, np.int64)
+    sorted_rows = np.empty((visible_count, PACKED_COLUMNS), packed.dtype)
+    sorted_boxes = np.empty((visible_count, 4), np.int32)  # recomputed: cheaper than a second random read
     chunk_tile_counts = np.zeros((chunk_count, tile_count), np.int64)
+    slot_starts = np.empty(visible_count + 1, np.int64)
     for chunk in numba.prange(chunk_count):
-        for k in range(chunk * chunk_size, min(visible_count, (chunk + 1) * chunk_size)):
+        first, last = chunk * chunk_size, min(visible_count, (chunk + 1) * chunk_size)
+        # The one loop that reads the input in random order; alone in its loop, so the loads overlap.
+        for k in range(first, last):
             i = sorted_keys[k] & 0xFFFFFFFF
-            for ty in range(boxes[i, 2], boxes[i, 3] + 1):
-                for tx in range(boxes[i, 0], boxes[i, 1] + 1):
+            order[k] = i
+            for column in range(PACKED_COLUMNS):
+                sorted_rows[k, column] = packed[i, column]
+        for k in range(first, last):
+            tx0, tx1, ty0, ty1 = _tile_box(sorted_rows[k], width, height, tile_px)
+            sorted_boxes[k, 0], sorted_boxes[k, 1], sorted_boxes[k, 2], sorted_boxes[k, 3] = tx0, tx1, ty0, ty1
+            slot_starts[k + 1] = (sorted_boxes[k, 1] - sorted_boxes[k, 0] + 1) * (sorted_boxes[k, 3] - sorted_boxes[k, 2] + 1)
+            for ty in range(sorted_boxes[k, 2], sorted_boxes[k, 3] + 1):
+                for tx in range(sorted_boxes[k, 0], sorted_boxes[k, 1] + 1):
                     chunk_tile_counts[chunk, ty * tiles_x + tx] += 1
-    slot_starts = np.empty(count + 1, np.int64)
     slot_starts[0] = 0
-    for i in range(count):
-        slot_starts[i + 1] = slot_starts[i] + (boxes[i, 1] - boxes[i, 0] + 1) * (boxes[i, 3] - boxes[i, 2] + 1)
+    for k in range(visible_count):
+        slot_starts[k + 1] += slot_starts[k]
     tile_starts = np.empty(tile_count + 1, np.int64)
     chunk_cursors = np.empty((chunk_count, tile_count), np.int64)
     total = 0
@@ -151,17 +164,16 @@ def _fill_tiles(packed, boxes, sorted_keys, visible_count, tiles_x, tiles_y, chu
     for chunk in numba.prange(chunk_count):
         cursors = chunk_cursors[chunk]
         for k in range(chunk * chunk_size, min(visible_count, (chunk + 1) * chunk_size)):
-            i = sorted_keys[k] & 0xFFFFFFFF
-            slot = slot_starts[i]  # a Gaussian's slots run over its tile box row by row
-            for ty in range(boxes[i, 2], boxes[i, 3] + 1):
-                for tx in range(boxes[i, 0], boxes[i, 1] + 1):
+            slot = slot_starts[k]
+            for ty in range(sorted_boxes[k, 2], sorted_boxes[k, 3] + 1):
+                for tx in range(sorted_boxes[k, 0], sorted_boxes[k, 1] + 1):
                     entry = cursors[ty * tiles_x + tx]
                     cursors[ty * tiles_x + tx] = entry + 1
                     for column in range(PACKED_COLUMNS):
-                        entry_rows[entry, column] = packed[i, column]
+                        entry_rows[entry, column] = sorted_rows[k, column]
                     slot_entries[slot] = entry
                     slot += 1
-    return entry_rows, slot_entries, tile_starts, slot_starts
+    return entry_rows, slot_entries, tile_starts, order, slot_starts
 
 
 def bin_tiles(packed: np.ndarray, width: int, height: int) -> TileBins:
@@ -173,14 +185,14 @@ def bin_tiles(packed: np.ndarray, width: int, height: int) -> TileBins:
     # Positive float32 bit patterns sort like the numbers (the only depths kept are > NEAR_PLANE_M > 0).
     depth_bits = np.ascontiguousarray(packed[:, DEPTH]).astype(np.float32).view(np.int32)
     tiles_x, tiles_y = -(-width // TILE_PX), -(-height // TILE_PX)
-    boxes, keys = np.empty((count, 4), np.int32), np.empty(count, np.int64)
-    _tile_boxes_and_keys(packed, depth_bits, width, height, TILE_PX, boxes, keys)
+    keys = np.empty(count, np.int64)
+    _depth_keys(packed, depth_bits, width, height, TILE_PX, keys)
     keys.sort()  # numpy's vectorised sort: ~2x numba's, and unique keys make stability moot
     visible_count = int(np.searchsorted(keys, _CULLED))
-    entry_rows, slot_entries, tile_starts, slot_starts = _fill_tiles(
-        packed, boxes, keys, visible_count, tiles_x, tiles_y, 4 * numba.get_num_threads()
+    entry_rows, slot_entries, tile_starts, order, slot_starts = _fill_tiles(
+        packed, keys, visible_count, width, height, TILE_PX, tiles_x, tiles_y, 4 * numba.get_num_threads()
     )
-    return TileBins(entry_rows, slot_entries, tile_starts, tiles_x, slot_starts)
+    return TileBins(entry_rows, slot_entries, tile_starts, tiles_x, order, slot_starts, count)
 
 
 @numba.njit(cache=True, inline="always")
@@ -303,12 +315,13 @@ def _forward(entry_rows, tile_starts, tiles_x, tile_px, background, out_rgb, out
 
 
 def composite_forward(
-    bins: TileBins, width: int, height: int, background_rgb: np.ndarray
+    bins: TileBins, width: int, height: int, background_rgb: np.ndarray, dtype: type = np.float64
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, ForwardState]:
-    """Composite binned Gaussians; returns rgb (H, W, 3), depth (H, W), silhouette (H, W) float64 and the backward state."""
-    out_rgb = np.empty((height, width, 3))
-    out_depth = np.empty((height, width))
-    out_silhouette = np.empty((height, width))
+    """Composite binned Gaussians; returns rgb (H, W, 3), depth (H, W), silhouette (H, W) of ``dtype`` (computed in
+    float64, rounded once when stored) and the backward state."""
+    out_rgb = np.empty((height, width, 3), dtype)
+    out_depth = np.empty((height, width), dtype)
+    out_silhouette = np.empty((height, width), dtype)
     out_transmittance = np.empty((height, width))
     out_contributors = np.empty((height, width), np.int32)
     _forward(
@@ -355,10 +368,14 @@ def _backward(entry_rows, tile_starts, tiles_x, tile_px, background, transmittan
             half_inv_radius_sq = _footprint(row, x0, x1, y0, y1, x_axis, y_axis)
             radius, opacity, z = np.float64(row[RADIUS]), np.float64(row[OPACITY]), np.float64(row[DEPTH])
             red, green, blue = np.float64(row[RED]), np.float64(row[RED + 1]), np.float64(row[RED + 2])
-            grad_u = grad_v = grad_radius = grad_z = grad_opacity = grad_red = grad_green = grad_blue = 0.0
+            # d alpha / d(o, u, v, r) = alpha * (1 / o, dx / r^2, dy / r^2, q / r) with q = (dx^2 + dy^2) / r^2 and
+            # alpha = o fx fy: sum grad_alpha * fx * (1, dx, dx^2 / r^2) along a row, then weigh rows by fy.
+            grad_z = grad_red = grad_green = grad_blue = 0.0
+            sum_opacity = sum_u = sum_v = sum_radius = 0.0
             for ky in range(y1 - y0 + 1):
                 ly = y0 - y_lo + ky
                 kx_lo, kx_hi = _row_span(x_axis, x1 - x0 + 1, y_axis[DISTANCE_SQ, ky])
+                row_falloff = row_offset = row_distance_sq = 0.0
                 for kx in range(kx_lo, kx_hi + 1):
                     lx = x0 - x_lo + kx
                     if position >= used[ly, lx]:
@@ -380,25 +397,30 @@ def _backward(entry_rows, tile_starts, tiles_x, tile_px, background, transmittan
                     behind[ly, lx] += alpha * (own - behind[ly, lx])
                     if raw_alpha > ALPHA_MAX:
                         continue  # clamped: alpha does not depend on the parameters here
-                    grad_opacity += grad_alpha * x_axis[FALLOFF, kx] * y_axis[FALLOFF, ky]
-                    # alpha = o exp(-q / 2), q = ((px - u)^2 + (py - v)^2) / r^2
-                    grad_q = -0.5 * grad_alpha * raw_alpha
-                    grad_u -= grad_q * 2.0 * x_axis[OFFSET, kx] * 2.0 * half_inv_radius_sq
-                    grad_v -= grad_q * 2.0 * y_axis[OFFSET, ky] * 2.0 * half_inv_radius_sq
-                    grad_radius -= grad_q * 2.0 * (x_axis[DISTANCE_SQ, kx] + y_axis[DISTANCE_SQ, ky]) / radius
-            grad[U], grad[V], grad[RADIUS], grad[DEPTH], grad[OPACITY] = grad_u, grad_v, grad_radius, grad_z, grad_opacity
+                    along_x = grad_alpha * x_axis[FALLOFF, kx]
+                    row_falloff += along_x
+                    row_offset += along_x * x_axis[OFFSET, kx]
+                    row_distance_sq += along_x * x_axis[DISTANCE_SQ, kx]
+                falloff_y = y_axis[FALLOFF, ky]
+                sum_opacity += falloff_y * row_falloff
+                sum_u += falloff_y * row_offset
+                sum_v += falloff_y * y_axis[OFFSET, ky] * row_falloff
+                sum_radius += falloff_y * (row_distance_sq + y_axis[DISTANCE_SQ, ky] * row_falloff)
+            grad[U] = 2.0 * half_inv_radius_sq * opacity * sum_u
+            grad[V] = 2.0 * half_inv_radius_sq * opacity * sum_v
+            grad[RADIUS] = opacity * sum_radius / radius
+            grad[DEPTH], grad[OPACITY] = grad_z, sum_opacity
             grad[RED], grad[RED + 1], grad[RED + 2] = grad_red, grad_green, grad_blue
 
 
 @numba.njit(parallel=True, cache=True)
-def _sum_entries(slot_starts, slot_entries, entry_grads, grads):
-    for i in numba.prange(slot_starts.size - 1):
+def _sum_entries(order, slot_starts, slot_entries, entry_grads, grads):
+    for k in numba.prange(order.size):
         for column in range(PACKED_COLUMNS):
-            grads[i, column] = 0.0
-        for slot in range(slot_starts[i], slot_starts[i + 1]):
-            entry = slot_entries[slot]
-            for column in range(PACKED_COLUMNS):
-                grads[i, column] += entry_grads[entry, column]
+            total = 0.0  # float64 whatever the dtype of grads
+            for slot in range(slot_starts[k], slot_starts[k + 1]):
+                total += entry_grads[slot_entries[slot], column]
+            grads[order[k], column] = total
 
 
 def composite_backward(
@@ -408,14 +430,16 @@ def composite_backward(
     grad_rgb: np.ndarray,
     grad_depth: np.ndarray,
     grad_silhouette: np.ndarray,
+    dtype: type = np.float64,
 ) -> np.ndarray:
-    """Gradients (N, PACKED_COLUMNS) float64 of the loss w.r.t. the packed columns, given its gradients w.r.t.
-    the rendered rgb (H, W, 3), depth (H, W) and silhouette (H, W), all float64."""
+    """Gradients (N, PACKED_COLUMNS) of ``dtype`` (summed in float64, rounded once) of the loss w.r.t. the packed
+    columns, given its gradients w.r.t. the rendered rgb (H, W, 3), depth (H, W) and silhouette (H, W), float32 or
+    float64 (read as float64)."""
     entry_grads = np.empty((bins.slot_entries.size, PACKED_COLUMNS))  # _backward writes every row
     _backward(
         bins.entry_rows, bins.tile_starts, bins.tiles_x, TILE_PX, np.asarray(background_rgb, np.float64),
         state.transmittance_final, state.contributors, grad_rgb, grad_depth, grad_silhouette, entry_grads,
     )
-    grads = np.empty((bins.slot_starts.size - 1, PACKED_COLUMNS))
-    _sum_entries(bins.slot_starts, bins.slot_entries, entry_grads, grads)
+    grads = np.zeros((bins.gaussian_count, PACKED_COLUMNS), dtype)  # culled Gaussians keep zeros
+    _sum_entries(bins.order, bins.slot_starts, bins.slot_entries, entry_grads, grads)
     return grads

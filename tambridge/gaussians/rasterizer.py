@@ -77,6 +77,12 @@ def composite_cpu(screen: ScreenGaussians, width: int, height: int, background_r
     return RenderOutput(rgb=rgb, depth_m=depth, silhouette=silhouette)
 
 
+def _kernel_array(tensor: torch.Tensor) -> np.ndarray:
+    """A C-contiguous CPU float32 or float64 array of ``tensor`` (the kernels read either as float64), copied only when needed."""
+    dtype = tensor.dtype if tensor.dtype in (torch.float32, torch.float64) else torch.float64
+    return np.ascontiguousarray(tensor.detach().to("cpu", dtype).numpy())
+
+
 class _CpuComposite(torch.autograd.Function):
     """Autograd wrapper of :mod:`cpu_kernel`: inputs are the ScreenGaussians fields, outputs the three maps."""
 
@@ -88,9 +94,11 @@ class _CpuComposite(torch.autograd.Function):
         storage = torch.float64 if any(column.dtype == torch.float64 for column in columns) else torch.float32
         packed = torch.cat([column.detach().to("cpu", storage) for column in columns], dim=1).numpy()
         background = background_rgb.detach().to("cpu", torch.float64).numpy()
+        # Maps and gradients come out in the Gaussians' dtype straight from the kernels (float64 inside).
+        numpy_dtype = np.float64 if means_px.dtype == torch.float64 else np.float32
         bins = cpu_kernel.bin_tiles(packed, width, height)
-        colour, depth, silhouette, state = cpu_kernel.composite_forward(bins, width, height, background)
-        ctx.kernel_inputs = (bins, state, background)
+        colour, depth, silhouette, state = cpu_kernel.composite_forward(bins, width, height, background, numpy_dtype)
+        ctx.kernel_inputs = (bins, state, background, numpy_dtype)
         ctx.dtype, ctx.device = means_px.dtype, means_px.device
         return tuple(
             torch.from_numpy(image).to(device=means_px.device, dtype=means_px.dtype) for image in (colour, depth, silhouette)
@@ -99,9 +107,9 @@ class _CpuComposite(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_rgb, grad_depth, grad_silhouette):
-        bins, state, background = ctx.kernel_inputs
-        image_grads = [grad.detach().to("cpu", torch.float64).contiguous().numpy() for grad in (grad_rgb, grad_depth, grad_silhouette)]
-        grads = torch.from_numpy(cpu_kernel.composite_backward(bins, state, background, *image_grads))
+        bins, state, background, numpy_dtype = ctx.kernel_inputs
+        image_grads = [_kernel_array(grad) for grad in (grad_rgb, grad_depth, grad_silhouette)]
+        grads = torch.from_numpy(cpu_kernel.composite_backward(bins, state, background, *image_grads, numpy_dtype))
         grads = grads.to(device=ctx.device, dtype=ctx.dtype)
         k = cpu_kernel
         return (
