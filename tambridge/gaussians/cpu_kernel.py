@@ -195,6 +195,10 @@ def bin_tiles(packed: np.ndarray, width: int, height: int) -> TileBins:
     return TileBins(entry_rows, slot_entries, tile_starts, tiles_x, order, slot_starts, count)
 
 
+# Rows of the per-axis footprint buffers (3, tile side) filled by _footprint.
+OFFSET, DISTANCE_SQ, FALLOFF = 0, 1, 2
+
+
 @numba.njit(cache=True, inline="always")
 def _axis_falloff(centre, lo, hi, half_inv_radius_sq, step_ratio, axis):
     """For pixels lo..hi on one axis: ``axis[OFFSET, k]`` = p - centre, ``axis[DISTANCE_SQ, k]`` = offset^2 / r^2 and
@@ -212,10 +216,6 @@ def _axis_falloff(centre, lo, hi, half_inv_radius_sq, step_ratio, axis):
         axis[FALLOFF, k] = value
         value *= ratio
         ratio *= step_ratio
-
-
-# Rows of the per-axis footprint buffers filled by _footprint.
-OFFSET, DISTANCE_SQ, FALLOFF = 0, 1, 2
 
 
 @numba.njit(cache=True, inline="always")
