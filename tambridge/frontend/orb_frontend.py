@@ -489,8 +489,8 @@ class OrbFrontend:
         )
 
     # ------------------------------------------------------------------ checkpoints
-    _TRANSIENT = ("camera", "config", "K", "extractor", "vocabulary", "_lock", "_timing_lock", "_jobs", "_worker",
-                  "_worker_error")
+    _TRANSIENT = ("camera", "config", "K", "extractor", "vocabulary", "_lock", "_timing_lock", "_mapping_idle", "_jobs",
+                  "_worker", "_worker_error")
     """Attributes a checkpoint leaves out: given to or rebuilt by the constructor, or threads and locks."""
 
     def state_dict(self) -> dict:
