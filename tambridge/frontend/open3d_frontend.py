@@ -53,11 +53,12 @@ class Open3dFrontend:
     def __init__(
         self,
         camera: Camera,
-        config: Open3dFrontendConfig = Open3dFrontendConfig(),
+        config: Open3dFrontendConfig | None = None,
         world_from_first_camera: np.ndarray | None = None,
     ) -> None:
         self.camera = camera
-        self.config = config
+        # A fresh default each time: the config dataclasses are mutable (``--set`` writes into them).
+        self.config = config if config is not None else Open3dFrontendConfig()
         self.timings_s = empty_timings()
         self.frames_lost = 0
         self.loops_closed = 0

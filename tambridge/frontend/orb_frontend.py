@@ -87,15 +87,16 @@ class OrbFrontend:
     def __init__(
         self,
         camera: Camera,
-        config: OrbFrontendConfig = OrbFrontendConfig(),
+        config: OrbFrontendConfig | None = None,
         world_from_first_camera: np.ndarray | None = None,
     ) -> None:
         self.camera = camera
-        self.config = config
+        # A fresh default each time: the config dataclasses are mutable (``--set`` writes into them).
+        self.config = config if config is not None else OrbFrontendConfig()
         self.K = camera.K
         self.map = SlamMap()
-        self.extractor = OrbExtractor(camera, config)
-        self.vocabulary = Vocabulary.load(None if config.vocabulary_path is None else config.vocabulary_path)
+        self.extractor = OrbExtractor(camera, self.config)
+        self.vocabulary = Vocabulary.load(self.config.vocabulary_path)
         self.database = KeyframeDatabase(self.vocabulary.n_words)
         self.timings_s = empty_timings()
         self.frames_lost = 0
@@ -111,7 +112,7 @@ class OrbFrontend:
         self._lost_streak = 0
         self._segment = -1
         self._keyframes_since_loop = 1 << 30
-        self._loop_consistency = LoopConsistency(config.loop_consistency)
+        self._loop_consistency = LoopConsistency(self.config.loop_consistency)
         self._loop_closed_unreported = False
         self._lock = threading.RLock()
         self._timing_lock = threading.Lock()
