@@ -24,6 +24,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
+from tambridge.config import dotted_items
 from tambridge.errors import TambridgeError
 from tambridge.export.atomic import atomic_path
 
@@ -170,24 +171,14 @@ def load_checkpoint(path: Path) -> Checkpoint:
     return checkpoint
 
 
-def _flatten(values: dict, prefix: str = "") -> dict[str, Any]:
-    flat = {}
-    for key, value in values.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
-
-
 def check_resumable(path: Path, checkpoint: Checkpoint, config: dict, sequence: dict) -> None:
     """Raise :class:`CheckpointError` (naming ``path`` and what differs) unless ``checkpoint`` was written by a run
     of the same config (sections in :data:`IGNORED_CONFIG_SECTIONS` aside) over the same sequence.
 
     ``config`` is the resumed run's resolved config as a dict, ``sequence`` its :func:`sequence_fingerprint`.
     """
-    saved = _flatten({k: v for k, v in checkpoint.config.items() if k not in IGNORED_CONFIG_SECTIONS})
-    current = _flatten({k: v for k, v in config.items() if k not in IGNORED_CONFIG_SECTIONS})
+    saved = dotted_items({k: v for k, v in checkpoint.config.items() if k not in IGNORED_CONFIG_SECTIONS})
+    current = dotted_items({k: v for k, v in config.items() if k not in IGNORED_CONFIG_SECTIONS})
     differing = sorted(key for key in saved.keys() | current.keys() if saved.get(key, "<absent>") != current.get(key, "<absent>"))
     if differing:
         shown = ", ".join(f"{key}: {saved.get(key, '<absent>')!r} in the checkpoint, {current.get(key, '<absent>')!r} now"

@@ -164,6 +164,17 @@ def to_dict(config: Config) -> dict:
     return dataclasses.asdict(config)
 
 
+def dotted_items(values: dict, prefix: str = "") -> dict[str, typing.Any]:
+    """Every leaf of a nested dict under its dotted key (``mapper.iterations``), in insertion order."""
+    leaves = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            leaves.update(dotted_items(value, f"{prefix}{key}."))
+        else:
+            leaves[f"{prefix}{key}"] = value
+    return leaves
+
+
 def to_yaml(config: Config) -> str:
     return yaml.safe_dump(to_dict(config), sort_keys=False)
 

@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tambridge.evaluation.report import RenderPair, flatten_metrics, format_metric, write_report
+from tambridge.config import dotted_items
+from tambridge.evaluation.report import RenderPair, format_metric, write_report
 from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.geometry import exp_se3
 from tambridge.trajectory import Trajectory
@@ -89,7 +90,7 @@ def test_full_report_loads_every_image(browser, tmp_path):
     assert page["headings"] == ["Trajectory", "Renders", "Time per stage", "Gaussians", "Metrics"]
     assert page["cells"]["trajectory.ate_rmse_m"] == format_metric(errors["tambridge (SE(3))"].ate_rmse_m)
     assert page["cells"]["fps_end_to_end"] == "3.25"
-    assert len(page["cells"]) == len(flatten_metrics(metrics))
+    assert len(page["cells"]) == len(dotted_items(metrics))
     assert not list((tmp_path / "report").glob("*.partial"))
 
 

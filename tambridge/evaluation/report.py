@@ -22,6 +22,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from tambridge.config import dotted_items  # noqa: E402
 from tambridge.evaluation.colmap import is_monocular_trajectory_file  # noqa: E402
 from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory  # noqa: E402
@@ -125,18 +126,6 @@ def report_from_run(run_dir: Path) -> Path:
     return write_report(run_dir / "report", metrics, errors, title=f"tambridge: {metrics.get('sequence', run_dir)}")
 
 
-def flatten_metrics(metrics: dict, prefix: str = "") -> list[tuple[str, object]]:
-    """``(dotted key, value)`` for every leaf of a nested metrics dict, in insertion order."""
-    rows = []
-    for key, value in metrics.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            rows += flatten_metrics(value, f"{name}.")
-        else:
-            rows.append((name, value))
-    return rows
-
-
 def format_metric(value: object) -> str:
     """How a metric value is shown: floats with 6 significant digits, None as a dash, lists as JSON."""
     if value is None:
@@ -152,7 +141,7 @@ def _metrics_table(metrics: dict) -> str:
     rows = "".join(
         f'<tr><td>{html.escape(name)}</td><td class="value" data-key="{html.escape(name)}">'
         f"{html.escape(format_metric(value))}</td></tr>"
-        for name, value in flatten_metrics(metrics)
+        for name, value in dotted_items(metrics).items()
     )
     return f'<table id="metrics"><tr><th>metric</th><th>value</th></tr>{rows}</table>'
 
