@@ -65,7 +65,7 @@ def ground_truth_per_frame(sequence: RgbdSequence) -> np.ndarray:
 
 def record(sequence_dir: Path, max_frames: int, cache: Path, overrides: list[str]) -> None:
     config = load_config(None, overrides)
-    sequence = open_sequence(sequence_dir, max_frames=max_frames)
+    sequence = open_sequence(sequence_dir, max_frames=max_frames or None)
     frontend = make_frontend(config, sequence.camera)
     events = []
     started = time.perf_counter()
@@ -84,7 +84,7 @@ def replay(cache: Path, overrides: list[str], preset: Path | None, ground_truth_
            tracked_frames: list[int]) -> dict:
     data = pickle.loads(cache.read_bytes())
     config = load_config(preset, overrides)
-    sequence = open_sequence(Path(data["sequence_dir"]), max_frames=data["max_frames"])
+    sequence = open_sequence(Path(data["sequence_dir"]), max_frames=data["max_frames"] or None)
     result = data["result"]
     truth = ground_truth_per_frame(sequence)
     estimate = result.trajectory.world_from_camera

@@ -1,6 +1,8 @@
 import numpy as np
+import pytest
 
 from tambridge.geometry import inverse, transform_points
+from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render
 from tambridge.io.tum import open_sequence
 
 
@@ -54,3 +56,19 @@ def test_ground_truth_is_a_closed_loop_and_colour_is_textured(synthetic_sequence
     frame = sequence[0]
     assert (frame.depth_m > 0).all() and 0.5 < np.median(frame.depth_m) < 6.0
     assert frame.rgb.std() > 20
+
+
+def test_supersampled_render_keeps_the_centre_depth_and_removes_aliasing():
+    scene, camera = make_room_scene(0), default_camera(80, 60)
+    pose = loop_path(8)[3]
+    colour_1, depth_1 = render(scene, camera, pose)
+    colour_3, depth_3 = render(scene, camera, pose, supersampling=3)
+    colour_7, _ = render(scene, camera, pose, supersampling=7)
+    # The centre ray of each 3 x 3 block is the pixel-centre ray: depth is unchanged to float rounding.
+    np.testing.assert_allclose(depth_3, depth_1, atol=1e-5)
+    # Against a 7 x 7 area average (close to the band-limited image), 3 x 3 rays are far nearer than one ray.
+    error_1 = np.sqrt(np.mean((colour_1 - colour_7) ** 2))
+    error_3 = np.sqrt(np.mean((colour_3 - colour_7) ** 2))
+    assert error_3 < 0.4 * error_1, (error_3, error_1)
+    with pytest.raises(ValueError, match="odd"):
+        render(scene, camera, pose, supersampling=2)

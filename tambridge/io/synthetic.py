@@ -149,8 +149,23 @@ def loop_path(frame_count: int) -> np.ndarray:
     return np.stack(poses)
 
 
-def render(scene: SyntheticScene, camera: Camera, world_from_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ray-cast the scene: colour (H, W, 3) float32 in [0, 1] and z-depth (H, W) float32 metres (0 = no hit)."""
+def render(
+    scene: SyntheticScene, camera: Camera, world_from_camera: np.ndarray, supersampling: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ray-cast the scene: colour (H, W, 3) float32 in [0, 1] and z-depth (H, W) float32 metres (0 = no hit).
+
+    ``supersampling`` k (odd) casts k x k rays per pixel and averages their colour, as a real sensor integrates
+    light over the pixel's area; the depth is the centre ray's, as a depth camera does not blend surfaces.
+    With one ray per pixel, texture detail finer than a pixel aliases differently in every frame, which no
+    3D model can reproduce: it caps novel-view PSNR at about 29.5 dB at 160x120 (measured against 6 x 6 rays).
+    """
+    if supersampling != 1:
+        if supersampling < 1 or supersampling % 2 == 0:
+            raise ValueError(f"supersampling must be an odd positive integer, got {supersampling}")
+        colour, depth_m = render(scene, camera.scaled(supersampling), world_from_camera)
+        k, height, width = supersampling, camera.height, camera.width
+        colour = colour.reshape(height, k, width, k, 3).mean(axis=(1, 3))
+        return colour.astype(np.float32), np.ascontiguousarray(depth_m[k // 2 :: k, k // 2 :: k])
     columns, rows = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
     rays_camera = np.stack(
         [(columns - camera.cx) / camera.fx, (rows - camera.cy) / camera.fy, np.ones_like(columns)], axis=-1
@@ -214,6 +229,8 @@ class SynthOptions:
     depth_noise_m: float = 0.0
     colour_noise: float = 0.0
     motion_blur_samples: int = 1
+    # Rays per pixel along each side (odd); see :func:`render`. 1 keeps the tests' sequences fast to write.
+    supersampling: int = 1
     seed: int = 0
 
 
@@ -232,10 +249,10 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
     timestamps = np.arange(options.frame_count) / options.fps
     rgb_lines, depth_lines = ["# timestamp filename"], ["# timestamp filename"]
     for index, pose in enumerate(world_from_camera):
-        colour, depth_m = render(scene, camera, pose)
+        colour, depth_m = render(scene, camera, pose, options.supersampling)
         if options.motion_blur_samples > 1:
             previous = world_from_camera[index - 1]
-            blurred = [render(scene, camera, interpolate_pose(previous, pose, f))[0]
+            blurred = [render(scene, camera, interpolate_pose(previous, pose, f), options.supersampling)[0]
                        for f in np.linspace(0.5, 1.0, options.motion_blur_samples)[:-1]]
             colour = (colour + sum(blurred)) / options.motion_blur_samples
         if options.colour_noise > 0:
