@@ -91,13 +91,17 @@ def _resolve_config(preset, overrides, max_frames, stride, camera_file):
 @click.option("--resume", is_flag=True,
               help="Continue a killed run from OUTPUT/checkpoint/ (give the same sequence and options; the run needs "
                    "--set checkpoint.every_keyframes=N).")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]),
+              help="Where the Gaussian map and the bridge run: cpu (default), cuda (needs a GPU and gsplat), auto.")
 def reconstruct(sequence_dir, output_dir, preset, overrides, max_frames, stride, camera_file, quiet, viewer, mesh_from,
-                resume) -> None:
+                resume, device) -> None:
     """Track SEQUENCE_DIR (TUM layout) and write trajectory, splats, mesh and metrics to --output."""
     from pipelines.reconstruct import reconstruct as run
 
     if mesh_from is not None:
         overrides = (*overrides, f"mesh.source={mesh_from}")
+    if device is not None:
+        overrides = (*overrides, f"device={device}")
     config = _resolve_config(preset, overrides, max_frames, stride, camera_file)
     _print_run_summary(run(sequence_dir, output_dir, config, progress=not quiet, viewer=viewer, resume=resume))
     click.echo(f"report: {Path(output_dir) / 'report' / 'index.html'}")

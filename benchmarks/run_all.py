@@ -2,6 +2,10 @@
 
     python benchmarks/run_all.py --data ../shared/data            # every sequence with ground truth, full length
     python benchmarks/run_all.py --data ../shared/data --quick    # first 100 frames of each (under 10 min on 2 cores)
+    python benchmarks/run_all.py --data ../shared/data --gpu      # tambridge's mapping on CUDA (gsplat); stops at once without CUDA
+
+With ``--gpu`` every tambridge run gets ``--device cuda`` (its Gaussian map, bridge and rendering evaluation run on
+the GPU through gsplat; tracking, mesh and COLMAP stay on the CPU), and each row says which device ran it.
 
 Each method runs as its own process (its peak memory is that process's ru_maxrss, read with wait4), writes its
 usual output folder under benchmarks/results/runs/, and the table is printed, written to
@@ -63,11 +67,14 @@ def sequences_with_ground_truth(data: Path) -> list[Path]:
     return found
 
 
-def run_method(method: Method, sequence: Path, out: Path, max_frames: int | None) -> dict:
-    """Run one method on one sequence in a child process; returns its row of the table."""
+def run_method(method: Method, sequence: Path, out: Path, max_frames: int | None, device: str = "cpu") -> dict:
+    """Run one method on one sequence in a child process; returns its row of the table.
+
+    ``device`` goes to tambridge runs (``reconstruct --device``); other methods run on the CPU.
+    """
     command = [sys.executable, str(ROOT / "cli.py"), *method.command, str(sequence), "-o", str(out)]
     if method.command[0] == "reconstruct":
-        command.append("--quiet")
+        command += ["--quiet", "--device", device]
     if max_frames is not None:
         command += ["--max-frames", str(max_frames)]
     started = time.perf_counter()
@@ -77,11 +84,14 @@ def run_method(method: Method, sequence: Path, out: Path, max_frames: int | None
     seconds = time.perf_counter() - started
     log.close()
     row = {"method": method.name, "sequence": sequence.name, "exit_status": os.waitstatus_to_exitcode(status),
-           "seconds": seconds, "peak_memory_mb": usage.ru_maxrss / 1024.0,
-           # Every stage runs on the CPU: the mapper has no CUDA path wired in yet (gsplat is a rasteriser backend only).
-           "device": "cpu"}
+           "seconds": seconds, "peak_memory_mb": usage.ru_maxrss / 1024.0}
     metrics_path = out / "metrics.json"
     metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    # What the run itself recorded (a reconstruct without the mapper ran on the CPU); COLMAP always runs there.
+    row["device"] = metrics.get("device", device if method.command[0] == "reconstruct" else "cpu")
+    if "gpu" in metrics:
+        row.update(gpu=metrics["gpu"], gsplat_version=metrics.get("gsplat_version"),
+                   peak_gpu_memory_mb=metrics.get("peak_gpu_memory_mb"))
     trajectory_path = out / "trajectory.txt"
     if row["exit_status"] == 0 and trajectory_path.is_file():
         ground_truth = read_tum_trajectory(sequence / "groundtruth.txt")
@@ -102,7 +112,7 @@ def format_table(rows: list[dict]) -> str:
     columns = [("sequence", "sequence", "{}"), ("method", "method", "{}"), ("ATE cm", "ate_cm", "{:.2f}"),
                ("RPE cm/frame", "rpe_cm", "{:.2f}"), ("PSNR dB", "psnr_db", "{:.2f}"), ("SSIM", "ssim", "{:.3f}"),
                ("LPIPS", "lpips", "{:.3f}"), ("frames/s", "fps", "{:.2f}"), ("peak MB", "peak_memory_mb", "{:.0f}"),
-               ("outputs", "outputs", "{}")]
+               ("device", "device", "{}"), ("outputs", "outputs", "{}")]
     lines = ["| " + " | ".join(title for title, _, _ in columns) + " |", "|" + "---|" * len(columns)]
     for row in rows:
         cells = []
@@ -120,14 +130,15 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def describe_machine() -> str:
-    """CPU model, core count and Python version, for the README line that says where the table was measured."""
+def describe_machine(gpu: str | None = None) -> str:
+    """CPU model, core count and Python version (and ``gpu``'s name), for the README line that says where the table
+    was measured."""
     model = platform.processor() or platform.machine()
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.is_file():
         names = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines() if line.startswith("model name")]
         model = names[0] if names else model
-    return f"{model}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    return f"{model}, {os.cpu_count()} cores, Python {platform.python_version()}" + (f", {gpu}" if gpu else "")
 
 
 def update_readme(table: str, command: str, machine: str, date: str) -> None:
@@ -147,6 +158,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
     parser.add_argument("--quick", action="store_true", help="first 100 frames of each sequence")
+    parser.add_argument("--gpu", action="store_true",
+                        help="tambridge runs map on CUDA with gsplat (--device cuda); stops at once when there is no GPU")
     parser.add_argument("--methods", nargs="*", help="subset of method names")
     parser.add_argument("--sequences", nargs="*", help="subset of sequence folder names")
     parser.add_argument("--no-readme", action="store_true", help="do not rewrite README.md's results section")
@@ -158,6 +171,18 @@ def main() -> None:
         result = json.loads(results_path.read_text())
         update_readme(format_table(result["rows"]), result["command"], result["machine"], result["date"][:10])
         return
+    gpu = None
+    if arguments.gpu:
+        # Checked here, before any run: a --gpu table must not quietly hold CPU runs.
+        import torch
+
+        from tambridge.config import ConfigError
+        from tambridge.device import resolve_device
+
+        try:
+            gpu = torch.cuda.get_device_name(resolve_device("cuda"))
+        except ConfigError as error:
+            parser.exit(2, f"run_all.py --gpu: {error}\n(without --gpu every method runs on the CPU)\n")
     max_frames = 100 if arguments.quick else None
     runs = ROOT / "benchmarks" / "results" / "runs"
     runs.mkdir(parents=True, exist_ok=True)
@@ -170,11 +195,12 @@ def main() -> None:
                 continue
             out = runs / f"{sequence.name}__{method.name.split(' (')[0].replace(' ', '_')}"
             print(f"running {method.name} on {sequence.name} ...", flush=True)
-            rows.append(run_method(method, sequence, out, max_frames))
+            rows.append(run_method(method, sequence, out, max_frames, "cuda" if arguments.gpu else "cpu"))
     table = format_table(rows)
     print(table)
-    machine = describe_machine()
-    command = "python benchmarks/run_all.py --data ../shared/data" + (" --quick" if arguments.quick else "")
+    machine = describe_machine(gpu)
+    command = ("python benchmarks/run_all.py --data ../shared/data" + (" --quick" if arguments.quick else "")
+               + (" --gpu" if arguments.gpu else ""))
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine, "command": command,
               "rows": rows}
     atomic_write_text(results_path, json.dumps(result, indent=2) + "\n")

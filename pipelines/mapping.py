@@ -55,26 +55,34 @@ class MappingView:
     exposure: ViewExposure | None = None
 
 
-def resize_frame(frame: Frame, scale: float) -> ViewImages:
-    """A frame as mapper images at ``scale``: area-averaged colour, nearest-neighbour depth (no invented surfaces)."""
+def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device("cpu")) -> ViewImages:
+    """A frame as mapper images at ``scale`` on ``device``: area-averaged colour, nearest-neighbour depth (no
+    invented surfaces)."""
     height, width = frame.depth_m.shape
     size = (int(round(width * scale)), int(round(height * scale)))
     rgb, depth_m = frame.rgb, frame.depth_m
     if size != (width, height):
         rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
         depth_m = cv2.resize(depth_m, size, interpolation=cv2.INTER_NEAREST)
-    return ViewImages(torch.from_numpy(rgb.astype(np.float32) / 255.0), torch.from_numpy(np.ascontiguousarray(depth_m)))
+    return ViewImages(torch.from_numpy(rgb.astype(np.float32) / 255.0).to(device),
+                      torch.from_numpy(np.ascontiguousarray(depth_m)).to(device))
 
 
 class MappingStage:
-    """Fusion Bridge + online mapper over one sequence (state across keyframes)."""
+    """Fusion Bridge + online mapper over one sequence (state across keyframes).
 
-    def __init__(self, sequence: RgbdSequence, config: Config, run_log: RunLog) -> None:
+    ``device`` (:func:`tambridge.device.resolve_device` of ``config.device``) holds the map, the cached images,
+    the exposures and every tensor of the bridge; renders come back to the CPU only where numpy needs them.
+    """
+
+    def __init__(self, sequence: RgbdSequence, config: Config, run_log: RunLog,
+                 device: torch.device = torch.device("cpu")) -> None:
         self.sequence = sequence
         self.config = config
         self.run_log = run_log
+        self.device = device
         self.camera = sequence.camera.scaled(config.mapper.resolution_scale)
-        self.map = GaussianMap(config.mapper)
+        self.map = GaussianMap(config.mapper, device)
         self.views: list[MappingView] = []
         self.keyframe_poses: dict[int, np.ndarray] = {}
         self.selections: collections.Counter = collections.Counter()
@@ -96,7 +104,7 @@ class MappingStage:
         if not self.config.mapper.exposure_compensation:
             return None
         if not self.views:
-            return ViewExposure(frozen=True)
+            return ViewExposure(frozen=True, device=self.device)
         return ViewExposure(self.views[-1].exposure.parameters, self.config.mapper.lr_exposure)
 
     @staticmethod
@@ -119,7 +127,8 @@ class MappingStage:
         if frame_index in self._cache:
             self._cache.move_to_end(frame_index)
             return self._cache[frame_index]
-        images = resize_frame(frame if frame is not None else self.sequence[frame_index], self.config.mapper.resolution_scale)
+        images = resize_frame(frame if frame is not None else self.sequence[frame_index], self.config.mapper.resolution_scale,
+                              self.device)
         self._cache[frame_index] = images
         while len(self._cache) > self.config.mapper.window_size + 1:
             self._cache.popitem(last=False)
@@ -183,7 +192,7 @@ class MappingStage:
         """The ``window_size - 1`` earlier views that see the most of this view's points (at least one point)."""
         if not self.views or self.config.mapper.window_size <= 1:
             return []
-        points_camera = backproject(images.depth_m, self.camera, images.depth_m > 0).numpy().astype(np.float64)
+        points_camera = backproject(images.depth_m, self.camera, images.depth_m > 0).cpu().numpy().astype(np.float64)
         if len(points_camera) == 0:
             return []
         sample = points_camera[self._rng.choice(len(points_camera), min(OVERLAP_SAMPLES, len(points_camera)), replace=False)]
@@ -253,7 +262,7 @@ class MappingStage:
                 if exposure is not None:
                     with torch.no_grad():
                         rendered = exposure.apply(rendered)
-                rendered = rendered.clamp(0.0, 1.0).numpy()
+                rendered = rendered.clamp(0.0, 1.0).cpu().numpy()
                 yield index, rendered, self.sequence[index].rgb.astype(np.float32) / 255.0
 
         with self._threads():
@@ -261,16 +270,32 @@ class MappingStage:
 
     def state_dict(self) -> dict:
         """What a resumed run needs: the Gaussian map (:meth:`GaussianMap.state_dict`), the views, keyframe poses,
-        selection counts, the image cache and the random generator; not the sequence, config or run log."""
-        state = attribute_state(self, ("sequence", "config", "run_log", "camera", "map"))
+        selection counts, the image cache and the random generator; not the sequence, config or run log. Its
+        tensors are on the CPU (a checkpoint written on a GPU loads anywhere)."""
+        state = attribute_state(self, ("sequence", "config", "run_log", "camera", "map", "device"))
         state["map"] = self.map.state_dict()
-        return state
+        return _stage_tensors_to(state, torch.device("cpu"))
 
     def load_state_dict(self, state: dict) -> None:
-        """Continue from :meth:`state_dict` (on a stage built with the same sequence and config)."""
+        """Continue from :meth:`state_dict` (on a stage built with the same sequence and config); tensors go to
+        this stage's device."""
         state = dict(state)
         self.map.load_state_dict(state.pop("map"))
-        restore_attributes(self, state)
+        restore_attributes(self, _stage_tensors_to(state, self.device))
+
+
+def _stage_tensors_to(state: dict, device: torch.device) -> dict:
+    """``state`` (of :meth:`MappingStage.state_dict`, the map's part aside) with the cached images and the views'
+    exposures on ``device``; the stage's own objects are not changed (moved ones are copies)."""
+    state = dict(state)
+    state["_cache"] = collections.OrderedDict(
+        (index, ViewImages(images.rgb.to(device), images.depth_m.to(device))) for index, images in state["_cache"].items())
+    views = []
+    for view in state["views"]:
+        exposure = None if view.exposure is None else view.exposure.to(device)
+        views.append(view if exposure is view.exposure else dataclasses.replace(view, exposure=exposure))
+    state["views"] = views
+    return state
 
 
 def evaluation_frames(frame_count: int, every: int, mapping_frames: set[int]) -> list[int]:

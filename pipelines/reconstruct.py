@@ -25,6 +25,7 @@ from tambridge.checkpoint import (
     sequence_fingerprint,
 )
 from tambridge.config import Config, ConfigError, to_dict, to_yaml
+from tambridge.device import device_summary, resolve_device
 from tambridge.evaluation.report import RenderPair, write_report
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory
 from tambridge.export.atomic import atomic_write_text
@@ -108,6 +109,8 @@ def reconstruct(
     ``resume``: continue from ``output_dir/checkpoint/`` (written every ``checkpoint.every_keyframes`` keyframes by
     a run with the same config and sequence); the result is that of an uninterrupted run.
     """
+    # Before anything is read or removed: a run asked to use a GPU it cannot have stops here.
+    device = resolve_device(config.device)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_file = checkpoint_path(output_dir)
@@ -135,7 +138,8 @@ def reconstruct(
             )
         logger.info("%d frames, camera %s", len(sequence), sequence.camera)
         frontend = make_frontend(config, sequence.camera)
-        mapping = MappingStage(sequence, config, run_log) if config.mapper.enabled else None
+        mapping = MappingStage(sequence, config, run_log, device) if config.mapper.enabled else None
+        logger.info("Gaussian map, bridge and rendering evaluation on %s", device if mapping is not None else "(mapper off)")
         on_keyframe = None
         if mapping is not None:
             on_keyframe = lambda result, frame: mapping.on_keyframe(result.keyframe, frame, frontend.keyframe_poses())  # noqa: E731
@@ -217,6 +221,8 @@ def reconstruct(
             # The evaluation ran after the figures above were taken: refresh what it adds to.
             metrics.update(seconds_per_stage=dict(run_log.stage_seconds), peak_memory_mb=peak_memory_mb(),
                            warnings=run_log.warnings)
+        # The frontend, the mesh and the exporters run on the CPU: the device is the mapping stage's.
+        metrics.update(device_summary(device) if mapping is not None else {"device": "cpu"})
         errors = None
         if sequence.ground_truth is not None:
             errors = evaluate_trajectory(trajectory, sequence.ground_truth, align="se3")
@@ -286,10 +292,10 @@ def log_final_state(live_view: RerunViewer, sequence: RgbdSequence, tracking: Fr
         live_view.log_sparse_map(last, stamp, tracking.map_points_world_m, tracking.map_point_colours)
     if mapping is not None and len(mapping.map):
         gaussians = mapping.map.world_gaussians()
-        live_view.log_gaussians(last, stamp, gaussians.means_m.detach().numpy(), gaussians.rgb.detach().numpy(),
-                                gaussians.log_radii_m.detach().exp().numpy())
+        live_view.log_gaussians(last, stamp, gaussians.means_m.detach().cpu().numpy(), gaussians.rgb.detach().cpu().numpy(),
+                                gaussians.log_radii_m.detach().exp().cpu().numpy())
         pose = mapping.rendering_poses(tracking.trajectory)[last]
-        live_view.log_render(last, stamp, _uint8(mapping.map.render(mapping.camera, pose).rgb.detach().numpy()))
+        live_view.log_render(last, stamp, _uint8(mapping.map.render(mapping.camera, pose).rgb.detach().cpu().numpy()))
 
 
 def write_run_report(output_dir: Path, metrics: dict, sequence: RgbdSequence, errors: TrajectoryErrors | None,
@@ -306,8 +312,8 @@ def write_run_report(output_dir: Path, metrics: dict, sequence: RgbdSequence, er
     if mapping is not None and len(mapping.map):
         poses = mapping.rendering_poses(trajectory)
         for index in np.unique(np.linspace(0, len(sequence) - 1, REPORT_RENDERS).astype(int)):
-            rendered = mapping.map.render(mapping.camera, poses[index]).rgb.detach().numpy()
-            pairs.append(RenderPair(f"frame {index}", _uint8(mapping.images(int(index)).rgb.numpy()), _uint8(rendered)))
+            rendered = mapping.map.render(mapping.camera, poses[index]).rgb.detach().cpu().numpy()
+            pairs.append(RenderPair(f"frame {index}", _uint8(mapping.images(int(index)).rgb.cpu().numpy()), _uint8(rendered)))
     counts = np.array(gaussian_counts).reshape(-1, 2)
     write_report(output_dir / "report", metrics, trajectory_errors, pairs,
                  (counts[:, 0], counts[:, 1]) if len(counts) else None, title=f"tambridge: {metrics['sequence']}")

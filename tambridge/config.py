@@ -158,6 +158,9 @@ class Config:
     evaluation: EvaluationConfig = dataclasses.field(default_factory=EvaluationConfig)
     seed: int = 0
     checkpoint: CheckpointConfig = dataclasses.field(default_factory=CheckpointConfig)
+    # Torch device of the Gaussian map, the bridge and the rendering evaluation: cpu (ships), cuda (gsplat) or
+    # auto (cuda when a GPU and gsplat are there); resolved by tambridge.device.resolve_device.
+    device: str = "cpu"
 
 
 def to_dict(config: Config) -> dict:

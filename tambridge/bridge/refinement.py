@@ -69,7 +69,7 @@ def reprojection_error_px(
     points_cam = points_world_m.to(torch.float64) @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]
     in_front = points_cam[:, 2] > 1e-3
     if not bool(in_front.any()):
-        return torch.zeros((), dtype=torch.float64)
+        return torch.zeros((), dtype=torch.float64, device=points_cam.device)
     points_cam, observed = points_cam[in_front], keypoints_px[in_front].to(torch.float64)
     projected = torch.stack(
         [camera.fx * points_cam[:, 0] / points_cam[:, 2] + camera.cx, camera.fy * points_cam[:, 1] / points_cam[:, 2] + camera.cy],
@@ -111,15 +111,20 @@ def refine_pose(
     points_world_m (M, 3) / keypoints_px (M, 2) its matched map points and keypoints in ``camera``'s pixels (M may
     be 0). Translation and rotation have their own learning rates (metres and radians per step). Returns the pose
     of the lowest joint loss seen, so a refinement never makes the loss worse than the frontend's pose.
+
+    Every tensor lives on the device of ``gaussians`` (the observed images must be there too). The pose twist is a
+    leaf there, and the rasteriser moves the means by the pose in torch before compositing (an identity view
+    matrix for gsplat), so d(loss)/d(pose) is autograd's on every backend.
     """
-    start = torch.from_numpy(np.asarray(world_from_camera, dtype=np.float64))
-    rho = torch.zeros(3, dtype=torch.float64, requires_grad=True)
-    phi = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    device = gaussians.means_m.device
+    start = torch.from_numpy(np.asarray(world_from_camera, dtype=np.float64)).to(device)
+    rho = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
+    phi = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
     optimiser = torch.optim.Adam(
         [{"params": [rho], "lr": config.lr_translation_m}, {"params": [phi], "lr": config.lr_rotation_rad}]
     )
-    points = torch.from_numpy(np.asarray(points_world_m, dtype=np.float64).reshape(-1, 3))
-    keypoints = torch.from_numpy(np.asarray(keypoints_px, dtype=np.float64).reshape(-1, 2))
+    points = torch.from_numpy(np.asarray(points_world_m, dtype=np.float64).reshape(-1, 3)).to(device)
+    keypoints = torch.from_numpy(np.asarray(keypoints_px, dtype=np.float64).reshape(-1, 2)).to(device)
     pixel_count = observed_depth_m.numel()
     best_loss, best_delta = float("inf"), np.zeros(6)
     loss_initial, gated_fraction = float("nan"), 0.0
@@ -145,7 +150,7 @@ def refine_pose(
         if iteration == 0:
             loss_initial = value
         if value < best_loss:
-            best_loss, best_delta = value, pose_delta.detach().numpy().copy()
+            best_loss, best_delta = value, pose_delta.detach().cpu().numpy().copy()
         if iteration == config.iterations:
             break
         optimiser.zero_grad()

@@ -113,14 +113,26 @@ class ViewExposure:
     are rendered too bright or too dark (7-Scenes redkitchen: the same table 13 % brighter after 100 frames).
     The first view is ``frozen`` at the identity, which fixes the map's colour scale (gain and colours are
     otherwise ambiguous). ``parameters`` (2, 3): log gains, biases; optimised with Adam at ``learning_rate``.
+    A new exposure lives on ``device``, or on the device of the ``parameters`` it starts from.
     """
 
-    def __init__(self, parameters: torch.Tensor | None = None, learning_rate: float = 0.0, frozen: bool = False) -> None:
-        initial = torch.zeros((2, 3)) if parameters is None else parameters.detach().clone()
+    def __init__(self, parameters: torch.Tensor | None = None, learning_rate: float = 0.0, frozen: bool = False,
+                 device: str | torch.device = "cpu") -> None:
+        initial = torch.zeros((2, 3), device=device) if parameters is None else parameters.detach().clone()
         assert initial.shape == (2, 3), initial.shape
         self.parameters = initial.requires_grad_(not frozen)
         self.frozen = frozen
         self._optimiser = None if frozen else torch.optim.Adam([self.parameters], lr=learning_rate, eps=ADAM_EPS)
+
+    def to(self, device: str | torch.device) -> ViewExposure:
+        """This exposure on ``device``, Adam state included: itself when it is there already, else a copy."""
+        if self.parameters.device == torch.device(device):
+            return self
+        moved = ViewExposure(self.parameters.to(device), frozen=self.frozen)
+        if self._optimiser is not None:
+            # Restores the learning rate too; Adam casts its moments to the device of the parameter they belong to.
+            moved._optimiser.load_state_dict(self._optimiser.state_dict())
+        return moved
 
     def apply(self, rgb: torch.Tensor) -> torch.Tensor:
         """(H, W, 3) map colours -> this view's colours (differentiable in both)."""
