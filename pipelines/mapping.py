@@ -55,17 +55,26 @@ class MappingView:
     exposure: ViewExposure | None = None
 
 
-def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device("cpu")) -> ViewImages:
+def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device("cpu"),
+                 valid_region: tuple[int, int, int, int] | None = None) -> ViewImages:
     """A frame as mapper images at ``scale`` on ``device``: area-averaged colour, nearest-neighbour depth (no
-    invented surfaces)."""
+    invented surfaces). ``valid_region`` (top, bottom, left, right at full resolution, as
+    :attr:`RgbdSequence.valid_region`) marks where the colour has data; None or the whole frame: everywhere."""
     height, width = frame.depth_m.shape
     size = (int(round(width * scale)), int(round(height * scale)))
     rgb, depth_m = frame.rgb, frame.depth_m
     if size != (width, height):
         rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
         depth_m = cv2.resize(depth_m, size, interpolation=cv2.INTER_NEAREST)
-    return ViewImages(torch.from_numpy(rgb.astype(np.float32) / 255.0).to(device),
-                      torch.from_numpy(np.ascontiguousarray(depth_m)).to(device))
+    colour_valid = None
+    if valid_region is not None and tuple(valid_region) != (0, height, 0, width):
+        top, bottom, left, right = valid_region
+        # Pixels of the resized image whose whole footprint lies inside the region.
+        colour_valid = torch.zeros((size[1], size[0]), dtype=torch.bool)
+        colour_valid[int(np.ceil(top * scale)):int(np.floor(bottom * scale)),
+                     int(np.ceil(left * scale)):int(np.floor(right * scale))] = True
+    return ViewImages(torch.from_numpy(rgb.astype(np.float32) / 255.0),
+                      torch.from_numpy(np.ascontiguousarray(depth_m)), colour_valid).to(device)
 
 
 class MappingStage:
@@ -128,7 +137,7 @@ class MappingStage:
             self._cache.move_to_end(frame_index)
             return self._cache[frame_index]
         images = resize_frame(frame if frame is not None else self.sequence[frame_index], self.config.mapper.resolution_scale,
-                              self.device)
+                              self.device, self.sequence.valid_region)
         self._cache[frame_index] = images
         while len(self._cache) > self.config.mapper.window_size + 1:
             self._cache.popitem(last=False)
@@ -251,8 +260,10 @@ class MappingStage:
         return max(earlier, key=lambda view: view.frame_index) if earlier else min(self.views, key=lambda view: view.frame_index)
 
     def evaluate(self, rendering_poses: np.ndarray, frame_indices: list[int]) -> RenderingScores:
-        """PSNR/SSIM/LPIPS of renders at full resolution from ``rendering_poses`` (N, 4, 4) against the input frames."""
+        """PSNR/SSIM/LPIPS of renders at full resolution from ``rendering_poses`` (N, 4, 4) against the input frames,
+        inside the sequence's valid region (undistortion's border, where the frames have no data, is not scored)."""
         camera = self.sequence.camera
+        top, bottom, left, right = self.sequence.valid_region
 
         def pairs():
             for index in frame_indices:
@@ -262,8 +273,8 @@ class MappingStage:
                 if exposure is not None:
                     with torch.no_grad():
                         rendered = exposure.apply(rendered)
-                rendered = rendered.clamp(0.0, 1.0).cpu().numpy()
-                yield index, rendered, self.sequence[index].rgb.astype(np.float32) / 255.0
+                rendered = rendered.clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
+                yield index, rendered, self.sequence[index].rgb[top:bottom, left:right].astype(np.float32) / 255.0
 
         with self._threads():
             return score_renders(pairs())
@@ -289,7 +300,7 @@ def _stage_tensors_to(state: dict, device: torch.device) -> dict:
     exposures on ``device``; the stage's own objects are not changed (moved ones are copies)."""
     state = dict(state)
     state["_cache"] = collections.OrderedDict(
-        (index, ViewImages(images.rgb.to(device), images.depth_m.to(device))) for index, images in state["_cache"].items())
+        (index, images.to(device)) for index, images in state["_cache"].items())
     views = []
     for view in state["views"]:
         exposure = None if view.exposure is None else view.exposure.to(device)

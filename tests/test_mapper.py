@@ -253,3 +253,30 @@ def test_reconstruct_writes_splats_and_rendering_metrics(synthetic_sequence_dir,
     assert metrics["mapping_views"] == metrics["bridge"]["view_selection"]["FIRST"] + metrics["bridge"]["view_selection"]["NO_SPARSE_MAP"]
     assert {"tracking", "mapping", "evaluation"} <= set(metrics["seconds_per_stage"])
     assert metrics["fps_end_to_end"] > 0 and result.metrics == metrics
+
+
+def test_pixels_without_colour_data_pull_on_nothing():
+    """Two views that differ only outside ``colour_valid`` (undistortion's border) give the same Adam step."""
+    camera = default_camera(40, 30)
+    depth = torch.full((30, 40), 2.0)
+    colour_valid = torch.zeros((30, 40), dtype=torch.bool)
+    colour_valid[3:27, 4:36] = True
+    rgb = torch.rand(30, 40, 3, generator=torch.Generator().manual_seed(0))
+    results = []
+    for border_colour in (0.0, 1.0):
+        observed = torch.where(colour_valid[..., None], rgb, torch.tensor(border_colour))
+        torch.manual_seed(1)  # small_map draws its colours from torch's generator
+        gaussian_map = small_map([np.eye(4)], [200])
+        gaussian_map.optimise(camera, [(np.eye(4), ViewImages(observed, depth, colour_valid))], [0] * 3)
+        results.append({name: value.clone() for name, value in gaussian_map._params.items()})
+    for name in results[0]:
+        torch.testing.assert_close(results[0][name], results[1][name], atol=1e-6, rtol=0)
+    # Without the mask the border's colour does matter (the test can fail).
+    unmasked = []
+    for border_colour in (0.0, 1.0):
+        torch.manual_seed(1)
+        gaussian_map = small_map([np.eye(4)], [200])
+        observed = torch.where(colour_valid[..., None], rgb, torch.tensor(border_colour))
+        gaussian_map.optimise(camera, [(np.eye(4), ViewImages(observed, depth))], [0] * 3)
+        unmasked.append(gaussian_map._params["rgb"].clone())
+    assert (unmasked[0] - unmasked[1]).abs().max() > 1e-3

@@ -6,7 +6,7 @@ import pytest
 
 from tambridge.camera import TUM_PRESETS, find_sensor
 from tambridge.errors import CameraConfigError, SequenceFormatError
-from tambridge.io.tum import associate, open_sequence
+from tambridge.io.tum import associate, inscribed_rectangle, open_sequence
 
 
 def test_association_matches_nearest_stamps_within_20_ms():
@@ -81,6 +81,22 @@ def test_tum_preset_from_folder_name_and_undistortion(tmp_path):
     assert not np.array_equal(undistorted[:, :, 0] > 128, image[:, :, 0] > 128)
     # The principal point moves least: the line through the centre column stays within a pixel.
     assert undistorted[255, 319:322, 0].max() > 100
+    # Undistortion leaves a border without data; the valid region excludes all of it and little else.
+    cv2.imwrite(str(folder / "rgb/1.0.png"), np.full((480, 640, 3), 200, np.uint8))
+    top, bottom, left, right = sequence.valid_region
+    filled = sequence[0].rgb[:, :, 0] > 0
+    assert filled[top:bottom, left:right].all()
+    assert not filled.all() and 0.8 < (bottom - top) * (right - left) / filled.size < filled.mean()
+
+
+def test_inscribed_rectangle_of_a_disc_holds_only_valid_pixels():
+    rows, columns = np.mgrid[0:60, 0:80]
+    disc = (rows - 30) ** 2 + (columns - 40) ** 2 <= 28**2
+    top, bottom, left, right = inscribed_rectangle(disc)
+    assert disc[top:bottom, left:right].all()
+    # The largest square in a disc of radius 28 has side 28 sqrt(2) = 39.6 px; the greedy box comes close.
+    assert (bottom - top) * (right - left) >= 0.85 * 39.6**2
+    assert inscribed_rectangle(np.ones((6, 8), bool)) == (0, 6, 0, 8)
 
 
 def test_seven_scenes_style_folder_loads_without_flags(tmp_path):

@@ -63,10 +63,17 @@ def compute_threads(torch_count: int, numba_count: int) -> Iterator[None]:
 
 @dataclasses.dataclass
 class ViewImages:
-    """A view's frame at the mapping resolution: rgb (H, W, 3) float32 in [0, 1], depth_m (H, W) float32 (0 = invalid)."""
+    """A view's frame at the mapping resolution: rgb (H, W, 3) float32 in [0, 1], depth_m (H, W) float32 (0 = invalid),
+    colour_valid (H, W) bool where the colour has data (None: everywhere; undistortion leaves a border without)."""
 
     rgb: torch.Tensor
     depth_m: torch.Tensor
+    colour_valid: torch.Tensor | None = None
+
+    def to(self, device: torch.device) -> "ViewImages":
+        """The same images on ``device``."""
+        valid = None if self.colour_valid is None else self.colour_valid.to(device)
+        return ViewImages(self.rgb.to(device), self.depth_m.to(device), valid)
 
 
 def backproject(depth_m: torch.Tensor, camera: Camera, mask: torch.Tensor) -> torch.Tensor:
@@ -336,7 +343,11 @@ class GaussianMap:
             rendered = render(gaussians, camera, world_from_camera, backend=self.config.backend)
             exposure = exposures[view_index] if exposures is not None else None
             rendered_rgb = rendered.rgb if exposure is None else exposure.apply(rendered.rgb)
-            loss = map_loss(rendered_rgb, rendered.depth_m, images.rgb, images.depth_m,
+            observed_rgb = images.rgb
+            if images.colour_valid is not None:
+                # Where the frame has no colour the target is the render itself: those pixels pull on nothing.
+                observed_rgb = torch.where(images.colour_valid[..., None], observed_rgb, rendered_rgb.detach())
+            loss = map_loss(rendered_rgb, rendered.depth_m, observed_rgb, images.depth_m,
                             self.config.zeta, self.config.w_depth, self.config.w_colour)
             loss.backward()
             params = {name: leaf.detach() for name, leaf in leaves.items()}

@@ -85,6 +85,33 @@ def associate(
     return sorted(pairs)
 
 
+def inscribed_rectangle(valid: np.ndarray) -> tuple[int, int, int, int]:
+    """``(top, bottom, left, right)``: an axis-aligned box of (H, W) bool ``valid`` holding only True pixels.
+
+    Undistortion leaves a border of pixels that sample outside the raw image (black in colour, 0 in depth): on
+    TUM fr1 5 % of the frame. Starting from the whole frame, the side with the most invalid pixels is moved in one
+    row or column at a time (the side with the largest share of invalid pixels) until none is left; for the
+    convex valid region of a lens this comes close to the largest box.
+    """
+    top, bottom, left, right = 0, valid.shape[0], 0, valid.shape[1]
+    while top < bottom and left < right:
+        box = valid[top:bottom, left:right]
+        missing = {"top": 1 - box[0].mean(), "bottom": 1 - box[-1].mean(), "left": 1 - box[:, 0].mean(),
+                   "right": 1 - box[:, -1].mean()}
+        side = max(missing, key=missing.get)
+        if missing[side] == 0:
+            break
+        if side == "top":
+            top += 1
+        elif side == "bottom":
+            bottom -= 1
+        elif side == "left":
+            left += 1
+        else:
+            right -= 1
+    return top, bottom, left, right
+
+
 class RgbdSequence:
     """A TUM-layout RGB-D sequence: associated frames loaded on access, undistorted where the camera says.
 
@@ -108,11 +135,16 @@ class RgbdSequence:
         self.ground_truth = ground_truth
         self.camera: Camera = sensor.camera.undistorted()
         self._undistort_maps = None
+        # Rows top:bottom, columns left:right of the frames in which every pixel has data.
+        self.valid_region: tuple[int, int, int, int] = (0, self.camera.height, 0, self.camera.width)
         if sensor.camera.has_distortion:
             source = sensor.camera
             self._undistort_maps = cv2.initUndistortRectifyMap(
                 source.K, np.array(source.distortion), None, source.K, (source.width, source.height), cv2.CV_32FC1
             )
+            map_x, map_y = self._undistort_maps
+            inside = (map_x >= 0) & (map_x <= source.width - 1) & (map_y >= 0) & (map_y <= source.height - 1)
+            self.valid_region = inscribed_rectangle(inside)
 
     def __len__(self) -> int:
         return len(self.timestamps_s)
