@@ -47,7 +47,7 @@ class BridgeConfig:
     """Fusion Bridge (paper Sec. 3.3, appendix): view selection and joint pose refinement.
 
     ``enabled: false`` is the paper's ablation: frontend poses go straight to the mapper and every keyframe is a
-    mapping view. Learning rates are Adam's on the pose twist, metres and radians per step.
+    mapping view.
     """
 
     enabled: bool = True
@@ -57,12 +57,10 @@ class BridgeConfig:
     w_reprojection: float = 1.5
     w_colour: float = 0.5
     w_depth: float = 1.0
-    # 10 rather than 20: with the ORB frontend the refinement keeps the frontend pose on 7-Scenes (the pixel
-    # reprojection term outweighs the rendering terms near the frontend's optimum), so the extra steps bought
-    # nothing but time.
+    # Loss evaluations of the L-BFGS pose refinement (a render and its backward pass each).
     iterations: int = 10
-    lr_translation_m: float = 2e-3
-    lr_rotation_rad: float = 2e-3
+    # The twist's rotation is scaled so that a unit step turns points this far away as far as a unit translation.
+    lever_m: float = 2.5
     # Depth gate: a pixel whose depth residual exceeds this many median residuals is an outlier.
     depth_outlier_factor: float = 10.0
     # Below this share of gated pixels (and with no matched points) the frontend pose is kept as it is.

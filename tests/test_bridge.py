@@ -106,12 +106,12 @@ def synthetic_map():
 def test_refinement_recovers_a_pose_perturbation(synthetic_map):
     gaussian_map, camera, poses, views = synthetic_map
     start = poses[1] @ random_perturbation(np.random.default_rng(0), 0.02, 1.0)
-    config = dataclasses.replace(BridgeConfig(), iterations=40)
+    config = dataclasses.replace(BridgeConfig(), iterations=20)
     result = refine_pose(gaussian_map.gaussians(), camera, start, views[1].rgb, views[1].depth_m,
                          np.zeros((0, 3)), np.zeros((0, 2)), config)
     translation_m, rotation_deg = pose_error(result.world_from_camera, poses[1])
-    # Measured: 0.46 cm and 0.07 deg from 2 cm and 1 deg.
-    assert translation_m < 0.02 / 3 and rotation_deg < 1.0 / 3
+    # Measured: 0.58 cm and 0.08 deg from 2 cm and 1 deg, the same at 40 evaluations (this small map bounds it).
+    assert translation_m < 0.02 / 3 and rotation_deg < 1.0 / 5
     assert result.loss_final < 0.5 * result.loss_initial and result.gated_fraction > 0.5
 
 

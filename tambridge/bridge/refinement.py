@@ -105,56 +105,57 @@ def refine_pose(
     config: BridgeConfig,
     backend: str = "auto",
 ) -> RefinementResult:
-    """Refine ``world_from_camera`` (4, 4) of one view against the fixed ``gaussians``, with Adam on the twist.
+    """Refine ``world_from_camera`` (4, 4) of one view against the fixed ``gaussians`` with L-BFGS on the twist.
 
     observed_rgb (H, W, 3) in [0, 1] and observed_depth_m (H, W) are the view's frame at ``camera``'s resolution;
     points_world_m (M, 3) / keypoints_px (M, 2) its matched map points and keypoints in ``camera``'s pixels (M may
-    be 0). Translation and rotation have their own learning rates (metres and radians per step). Returns the pose
-    of the lowest joint loss seen, so a refinement never makes the loss worse than the frontend's pose.
+    be 0). ``config.iterations`` bounds the loss evaluations (one render and its backward pass each). Returns the
+    pose of the lowest joint loss seen, so a refinement never makes the loss worse than the frontend's pose.
 
-    Every tensor lives on the device of ``gaussians`` (the observed images must be there too). The pose twist is a
-    leaf there, and the rasteriser moves the means by the pose in torch before compositing (an identity view
-    matrix for gsplat), so d(loss)/d(pose) is autograd's on every backend.
+    L-BFGS with a strong-Wolfe line search rather than Adam: Adam's steps stay near its learning rate however small
+    the gradient, so in 10 steps it circles the optimum; on a synthetic view (map from two neighbours at
+    ground-truth poses, 10 evaluations) L-BFGS brought a 5 mm / 0.2 deg error to 1.2 mm (Adam: 2.5 mm) and 2 cm / 1 deg
+    to 5.6 mm (Adam: 13.6 mm).
     """
     device = gaussians.means_m.device
     start = torch.from_numpy(np.asarray(world_from_camera, dtype=np.float64)).to(device)
-    rho = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
-    phi = torch.zeros(3, dtype=torch.float64, device=device, requires_grad=True)
-    optimiser = torch.optim.Adam(
-        [{"params": [rho], "lr": config.lr_translation_m}, {"params": [phi], "lr": config.lr_rotation_rad}]
-    )
+    # Rotation in units of 1 / lever_m radians: a unit step turns points at lever_m as far as a unit translation.
+    twist_scale = torch.tensor([1.0, 1.0, 1.0] + [1.0 / config.lever_m] * 3, dtype=torch.float64, device=device)
+    twist = torch.zeros(6, dtype=torch.float64, device=device, requires_grad=True)
     points = torch.from_numpy(np.asarray(points_world_m, dtype=np.float64).reshape(-1, 3)).to(device)
     keypoints = torch.from_numpy(np.asarray(keypoints_px, dtype=np.float64).reshape(-1, 2)).to(device)
-    pixel_count = observed_depth_m.numel()
-    best_loss, best_delta = float("inf"), np.zeros(6)
-    loss_initial, gated_fraction = float("nan"), 0.0
-    for iteration in range(config.iterations + 1):
-        pose_delta = torch.cat([rho, phi])
+    with torch.no_grad():
+        rendered = render(gaussians, camera, start, torch.zeros(6, dtype=torch.float64, device=device), backend=backend)
+        # The gates are drawn once, at the frontend pose: gates redrawn at every step would let the pose lower
+        # the loss by moving hard pixels out of the gated set rather than by aligning the view.
+        gates = pixel_gates(observed_depth_m, rendered.depth_m, rendered.silhouette, config.gamma, config.depth_outlier_factor)
+    gated_fraction = float(gates.sum()) / observed_depth_m.numel()
+    if gated_fraction < config.min_gated_fraction and len(points) == 0:
+        return RefinementResult(np.asarray(world_from_camera, np.float64).copy(), float("nan"), float("nan"),
+                                gated_fraction, skipped=True)
+    observed_rgb = observed_rgb.to(rendered.rgb.dtype)
+    observed_depth_m = observed_depth_m.to(rendered.depth_m.dtype)
+    losses: list[tuple[float, np.ndarray]] = []  # (loss, pose delta) of every evaluation
+
+    def joint_loss() -> torch.Tensor:
+        optimiser.zero_grad()
+        pose_delta = twist * twist_scale
         rendered = render(gaussians, camera, start, pose_delta, backend=backend)
-        if iteration == 0:
-            # The gates are drawn once, at the frontend pose: gates redrawn at every step would let the pose
-            # lower the loss by moving hard pixels out of the gated set rather than by aligning the view.
-            gates = pixel_gates(observed_depth_m, rendered.depth_m.detach(), rendered.silhouette.detach(),
-                                config.gamma, config.depth_outlier_factor)
-            gated_fraction = float(gates.sum()) / pixel_count
-            if gated_fraction < config.min_gated_fraction and len(points) == 0:
-                return RefinementResult(np.asarray(world_from_camera, np.float64).copy(), float("nan"), float("nan"),
-                                        gated_fraction, skipped=True)
         loss = (
-            config.w_colour * masked_l1(rendered.rgb, observed_rgb.to(rendered.rgb.dtype), gates)
-            + config.w_depth * masked_l1(surface_depth_m(rendered.depth_m, rendered.silhouette), observed_depth_m.to(rendered.depth_m.dtype), gates)
+            config.w_colour * masked_l1(rendered.rgb, observed_rgb, gates)
+            + config.w_depth * masked_l1(surface_depth_m(rendered.depth_m, rendered.silhouette), observed_depth_m, gates)
         ).to(torch.float64)
         if len(points):
             loss = loss + config.w_reprojection * reprojection_error_px(camera, start, pose_delta, points, keypoints)
-        value = float(loss.detach())
-        if iteration == 0:
-            loss_initial = value
-        if value < best_loss:
-            best_loss, best_delta = value, pose_delta.detach().cpu().numpy().copy()
-        if iteration == config.iterations:
-            break
-        optimiser.zero_grad()
         loss.backward()
-        optimiser.step()
+        losses.append((float(loss.detach()), pose_delta.detach().cpu().numpy().copy()))
+        return loss
+
+    optimiser = torch.optim.LBFGS([twist], lr=1.0, max_iter=max(1, config.iterations), max_eval=max(1, config.iterations),
+                                  history_size=10, line_search_fn="strong_wolfe", tolerance_grad=1e-12,
+                                  tolerance_change=1e-14)
+    optimiser.step(joint_loss)
+    loss_initial = losses[0][0]
+    best_loss, best_delta = min(losses, key=lambda pair: pair[0])
     refined = np.asarray(world_from_camera, np.float64) @ exp_se3(best_delta)
     return RefinementResult(refined, loss_initial, best_loss, gated_fraction, skipped=False)
