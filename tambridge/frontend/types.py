@@ -68,10 +68,11 @@ class OrbFrontendConfig:
     distinctive_descriptors: bool = True
     # Keyframe culling (ORB-SLAM's KeyFrameCulling, after local BA): a keyframe whose close points are over 90%
     # seen by at least 3 other keyframes at a similar or finer scale leaves the map and follows a parent keyframe.
-    # Off by default: on 7-Scenes (700 frames) it culled 14 of 85 keyframes and cost ATE, 3.42 vs 3.09 cm inline
-    # and 3.56 vs 3.42 cm with the mapping thread, by missing one of the two loops (the loop's PnP verification is
-    # marginal there, 48 inliers for 40 needed); fr1/xyz (37 frames, 4 keyframes) culls none. It pays off where
-    # the camera lingers or revisits: fewer keyframes for local BA, the pose graph and the bag-of-words database.
+    # Off by default: on 7-Scenes (700 frames, inline mapping, deterministic) it culled 14 of 85 keyframes and cost
+    # ATE, 3.42 vs 3.09 cm, by finding one loop instead of two (the first loop's PnP verification is marginal
+    # there: 48 inliers for 40 needed, and a changed map tips it); with the mapping thread one run each gave 3.56
+    # vs 3.42 cm (threaded runs vary by about 0.2 cm from run to run). fr1/xyz (37 frames, 4 keyframes) culls none.
+    # It pays where the camera lingers: fewer keyframes for local BA, the pose graph and the keyframe database.
     keyframe_culling: bool = False
     # Local BA over the new keyframe and its best covisible keyframes.
     local_ba_keyframes: int = 10
