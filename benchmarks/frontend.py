@@ -83,7 +83,8 @@ def run_one(method: str, folder: Path, max_frames: int | None, output: Path) -> 
         "ate_cm": 100 * errors.ate_rmse_m, "rpe_cm": 100 * errors.rpe_trans_rmse_m, "rpe_deg": errors.rpe_rot_rmse_deg,
         "fps": len(sequence) / tracking_s, "tracking_s": tracking_s, "read_s": reading_s,
         "cpu_fps": len(sequence) / cpu_s, "cpu_s": cpu_s, "load_1min": load,
-        "keyframes": len(result.keyframe_poses), "loops": result.loops_closed, "lost": result.frames_lost,
+        "keyframes": len(result.keyframe_poses), "culled": result.keyframes_culled, "loops": result.loops_closed,
+        "lost": result.frames_lost,
         "relocalised": result.frames_relocalised, "stage_s": result.timings_s,
     }
     atomic_write_text(output, json.dumps(row))
@@ -109,7 +110,7 @@ def format_table(rows: list[dict]) -> str:
                ("ATE cm", "ate_cm", "{:.2f}"), ("RPE cm/frame", "rpe_cm", "{:.2f}"), ("RPE deg/frame", "rpe_deg", "{:.3f}"),
                ("frames/s", "fps", "{:.1f}"), ("CPU frames/s", "cpu_fps", "{:.1f}"), ("load", "load_1min", "{:.1f}"),
                ("read s", "read_s", "{:.1f}"), ("peak MB", "peak_memory_mb", "{:.0f}"),
-               ("keyframes", "keyframes", "{}"), ("loops", "loops", "{}"), ("lost", "lost", "{}")]
+               ("keyframes", "keyframes", "{}"), ("culled", "culled", "{}"), ("loops", "loops", "{}"), ("lost", "lost", "{}")]
     lines = ["| " + " | ".join(title for title, _, _ in columns) + " |", "|" + "---|" * len(columns)]
     for row in rows:
         cells = [("-" if row.get(key) is None else form.format(row[key])) for _, key, form in columns]

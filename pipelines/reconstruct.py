@@ -206,6 +206,7 @@ def reconstruct(
             "frames_relocalised": tracking.frames_relocalised,
             "frames_without_depth": len(frames_without_depth),
             "loops_closed": tracking.loops_closed,
+            "keyframes_culled": tracking.keyframes_culled,
             "frontend_seconds_per_stage": tracking.timings_s,
             "seconds_total": total_s,
             "fps_end_to_end": len(sequence) / total_s,

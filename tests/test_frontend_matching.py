@@ -20,6 +20,7 @@ from tambridge.frontend.pose_estimation import (
     pose_normal_equations,
     pose_normal_equations_reference,
     refine_pose,
+    refine_pose_reference,
     solve_pnp_ransac,
 )
 from tambridge.frontend.reprojection import chi2_thresholds, project_rgbd, rgbd_observations, row_weights
@@ -186,6 +187,40 @@ def test_refinement_from_the_prior_alone_rejects_outliers_and_returns_a_rotation
     assert np.linalg.norm(inverse(refined)[:3, 3] - inverse(camera_from_world)[:3, 3]) < 0.005
     np.testing.assert_allclose(refined[:3, :3] @ refined[:3, :3].T, np.eye(3), atol=1e-12)
     assert abs(np.linalg.det(refined[:3, :3]) - 1.0) < 1e-12
+
+
+@pytest.mark.parametrize("depth_noise_per_m", [0.0, 0.003])
+def test_refine_pose_kernel_matches_reference(depth_noise_per_m):
+    rng = np.random.default_rng(9)
+    camera_from_world, points_world, observations = _scene(rng, outliers=40)
+    prior = exp_se3(rng.normal(0, 0.02, 6)) @ camera_from_world
+    inv_sigma2 = rng.uniform(0.5, 1.0, len(points_world))
+    fast, fast_inliers = refine_pose(prior, points_world, observations, inv_sigma2, K, depth_noise_per_m)
+    slow, slow_inliers = refine_pose_reference(prior, points_world, observations, inv_sigma2, K, depth_noise_per_m)
+    np.testing.assert_array_equal(fast_inliers, slow_inliers)
+    np.testing.assert_allclose(fast, slow, atol=1e-12)
+
+
+def test_project_visible_kernel_matches_reference():
+    from tambridge.frontend.map_matching import project_visible, project_visible_reference
+    from tambridge.frontend.slam_map import SlamMap
+    from tambridge.frontend.types import OrbFrontendConfig
+
+    rng = np.random.default_rng(10)
+    camera = Camera(320, 240, 300.0, 300.0, 160.0, 120.0)
+    slam_map = SlamMap()
+    # Points seen from around the origin, some behind the camera, off to the side, too near or too far.
+    positions = rng.uniform([-3, -2, -1], [3, 2, 6], (2000, 3))
+    slam_map.points.add(positions, random_descriptors(rng, 2000), np.zeros((2000, 3), np.uint8),
+                        rng.normal(0, 0.3, 3), rng.integers(0, 8, 2000), 0, 1.2, 8)
+    camera_from_world = exp_se3(rng.normal(0, 0.2, 6))
+    point_ids = np.sort(rng.choice(2000, 1500, replace=False))
+    fast = project_visible(slam_map, point_ids, camera_from_world, camera, OrbFrontendConfig())
+    slow = project_visible_reference(slam_map, point_ids, camera_from_world, camera, OrbFrontendConfig())
+    assert 100 < len(fast[0]) < 1500
+    np.testing.assert_array_equal(fast[0], slow[0])
+    np.testing.assert_allclose(fast[1], slow[1], rtol=1e-12)
+    np.testing.assert_array_equal(fast[2], slow[2])
 
 
 def test_map_points_take_the_distinctive_descriptor_of_their_observations():

@@ -1,4 +1,5 @@
-"""What the map does when a keyframe arrives: new map points from depth, point culling, local and global BA."""
+"""What the map does when a keyframe arrives: new map points from depth, point and keyframe culling, local and
+global BA."""
 
 from __future__ import annotations
 
@@ -104,6 +105,63 @@ def cull_recent_points(slam_map: SlamMap, keyframe: Keyframe) -> int:
     return len(bad)
 
 
+# ORB-SLAM's KeyFrameCulling: a keyframe is redundant when over 90% of its close map points are seen by at least
+# three other keyframes at the same, a finer or a one-level coarser scale.
+REDUNDANT_FRACTION = 0.9
+REDUNDANT_OBSERVERS = 3
+
+
+def finer_observer_counts(
+    point_ids: np.ndarray, octaves: np.ndarray, observed_ids: np.ndarray, observed_octaves: np.ndarray, n_points: int
+) -> np.ndarray:
+    """For each of ``point_ids`` (M,) (unique) seen at ``octaves`` (M,): how many of the observations
+    ``(observed_ids (O,), observed_octaves (O,))`` see it at an octave at most one above its own. (M,) int64."""
+    level = np.full(n_points, -1, np.int64)
+    level[point_ids] = octaves
+    hit = (level[observed_ids] >= 0) & (observed_octaves <= level[observed_ids] + 1)
+    return np.bincount(observed_ids[hit], minlength=n_points)[point_ids]
+
+
+def cull_redundant_keyframes(slam_map: SlamMap, keyframe: Keyframe, config: OrbFrontendConfig) -> list[int]:
+    """ORB-SLAM's KeyFrameCulling over the keyframes covisible with the new ``keyframe``: each one whose close
+    map points (depth below ``close_depth_m``) are more than :data:`REDUNDANT_FRACTION` seen by at least
+    :data:`REDUNDANT_OBSERVERS` other keyframes at a similar or finer scale is culled
+    (:meth:`SlamMap.cull_keyframe`) with its best covisible keyframe as parent. Never culled: the new keyframe and
+    the one before it (so a keyframe event's previous keyframe is live whether mapping runs inline or in the
+    thread), the first keyframe of every map segment (the gauge of BA), and the ends of loop edges and segment
+    links (the pose graph's constraints). Returns the culled ids, in culling order."""
+    segment_starts: dict[int, int] = {}
+    for k in slam_map.keyframes:
+        segment_starts.setdefault(k.segment, k.id)
+    protected = {keyframe.id, keyframe.id - 1} | set(segment_starts.values())
+    protected |= {k for edge in slam_map.loop_edges + slam_map.segment_links for k in edge[:2]}
+    candidates = [slam_map.keyframes[i] for i in keyframe.best_covisible(len(slam_map.keyframes)) if i not in protected]
+    if not candidates:
+        return []
+    points = slam_map.points
+    live = [k for k in slam_map.keyframes if not k.culled]
+    observed = [k.point_ids >= 0 for k in live]
+    observed_ids = np.concatenate([k.point_ids[m] for k, m in zip(live, observed)])
+    observed_octaves = np.concatenate([k.features.octaves[m] for k, m in zip(live, observed)]).astype(np.int64)
+    observer = np.concatenate([np.full(int(m.sum()), k.id) for k, m in zip(live, observed)])
+    culled = []
+    for candidate in candidates:
+        depth = candidate.features.depth_m
+        close = np.flatnonzero(points.good(candidate.point_ids) & (depth > 0) & (depth < config.close_depth_m))
+        parent_ids = candidate.best_covisible(1)
+        if close.size == 0 or not parent_ids:
+            continue
+        others = observer != candidate.id
+        counts = finer_observer_counts(candidate.point_ids[close], candidate.features.octaves[close].astype(np.int64),
+                                       observed_ids[others], observed_octaves[others], points.count)
+        if (counts >= REDUNDANT_OBSERVERS).sum() > REDUNDANT_FRACTION * close.size:
+            slam_map.cull_keyframe(candidate, slam_map.keyframes[parent_ids[0]])
+            keep = observer != candidate.id
+            observed_ids, observed_octaves, observer = observed_ids[keep], observed_octaves[keep], observer[keep]
+            culled.append(candidate.id)
+    return culled
+
+
 def _inv_sigma2(octaves: np.ndarray, scale_factor: float) -> np.ndarray:
     return scale_factor ** (-2.0 * octaves)
 
@@ -176,6 +234,7 @@ def adjust_bundle(
         points.positions_m[point_ids] = solution.points_world
         if outliers.any():
             slam_map.recount_observations()
+        slam_map.update_culled_poses()
     return int(outliers.sum())
 
 

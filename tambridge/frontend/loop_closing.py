@@ -94,7 +94,8 @@ def detect_loop(
 
 
 def _graph_edges(slam_map: SlamMap, world_from_camera: np.ndarray) -> list[PoseEdge]:
-    """Consecutive keyframes of a segment, strong covisibility, loops and segment links, measured at the given poses."""
+    """Consecutive live keyframes of a segment, strong covisibility, loops and segment links, measured at the
+    given poses; a culled keyframe hangs from its parent by one edge (it follows the parent exactly afterwards)."""
     edges = []
     identity = np.eye(6)
 
@@ -103,6 +104,9 @@ def _graph_edges(slam_map: SlamMap, world_from_camera: np.ndarray) -> list[PoseE
 
     previous_of_segment: dict[int, int] = {}
     for keyframe in slam_map.keyframes:
+        if keyframe.culled:
+            edges.append(PoseEdge(keyframe.parent, keyframe.id, relative(keyframe.parent, keyframe.id), identity))
+            continue
         previous = previous_of_segment.get(keyframe.segment)
         if previous is not None:
             edges.append(PoseEdge(previous, keyframe.id, relative(previous, keyframe.id), identity))
@@ -133,6 +137,7 @@ def close_loop(slam_map: SlamMap, keyframe: Keyframe, loop: LoopDetection, camer
     optimised, _ = optimise_pose_graph(initial, edges, reference_node=0)
     for k, pose in zip(slam_map.keyframes, optimised):
         k.world_from_camera = pose
+    slam_map.update_culled_poses()
     slam_map.move_points_with_keyframes(before)
 
     # Fuse the loop side's points into the new keyframe and its neighbours (now at corrected poses).

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import numba
 import numpy as np
 
 from tambridge.camera import Camera
@@ -36,14 +37,61 @@ class PoseFix:
         return len(self.point_ids)
 
 
+@numba.njit(cache=True, nogil=True)
+def _project_visible_kernel(positions_m, normals, min_distance_m, max_distance_m, point_ids, rotation, translation, centre,
+                            fx, fy, cx, cy, width, height, log_scale, n_levels):
+    n = point_ids.shape[0]
+    visible = np.zeros(n, np.bool_)
+    projected = np.empty((n, 2))
+    octaves = np.empty(n, np.int64)
+    for i in range(n):
+        p = point_ids[i]
+        x = positions_m[p, 0] * rotation[0, 0] + positions_m[p, 1] * rotation[0, 1] + positions_m[p, 2] * rotation[0, 2] + translation[0]
+        y = positions_m[p, 0] * rotation[1, 0] + positions_m[p, 1] * rotation[1, 1] + positions_m[p, 2] * rotation[1, 2] + translation[1]
+        z = positions_m[p, 0] * rotation[2, 0] + positions_m[p, 1] * rotation[2, 1] + positions_m[p, 2] * rotation[2, 2] + translation[2]
+        if not z > 1e-6:
+            continue
+        u = fx * x / z + cx
+        v = fy * y / z + cy
+        if not (u >= 0 and u <= width - 1 and v >= 0 and v <= height - 1):
+            continue
+        ox, oy, oz = positions_m[p, 0] - centre[0], positions_m[p, 1] - centre[1], positions_m[p, 2] - centre[2]
+        distance = np.sqrt(ox * ox + oy * oy + oz * oz)
+        if not (distance >= 0.8 * min_distance_m[p] and distance <= 1.2 * max_distance_m[p]):
+            continue
+        if not (ox * normals[p, 0] + oy * normals[p, 1] + oz * normals[p, 2]) / max(distance, 1e-9) >= VIEWING_COS_MIN:
+            continue
+        visible[i] = True
+        projected[i, 0], projected[i, 1] = u, v
+        octave = np.ceil(np.log(max(max_distance_m[p] / max(distance, 1e-9), 1e-9)) / log_scale)
+        octaves[i] = int(min(max(octave, 0.0), n_levels - 1))
+    return visible, projected, octaves
+
+
 def project_visible(
     slam_map: SlamMap, point_ids: np.ndarray, camera_from_world: np.ndarray, camera: Camera, config: OrbFrontendConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points of ``point_ids`` (K,) in the camera's view: ``(ids (V,), projected_px (V, 2), predicted_octaves (V,))``.
 
     In view means in front, inside the image, within the point's ORB scale range and at most 60 degrees
-    off its mean viewing direction; the octave it should be detected at follows from its distance.
+    off its mean viewing direction; the octave it should be detected at follows from its distance. A numba
+    kernel (it runs over the whole local map several times per frame); :func:`project_visible_reference` is its
+    slow twin.
     """
+    points = slam_map.points
+    visible, projected, octaves = _project_visible_kernel(
+        points.positions_m, points.normals, points.min_distance_m, points.max_distance_m,
+        np.ascontiguousarray(point_ids, np.int64), np.ascontiguousarray(camera_from_world[:3, :3]),
+        np.ascontiguousarray(camera_from_world[:3, 3]), np.ascontiguousarray(inverse(camera_from_world)[:3, 3]),
+        camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, np.log(config.scale_factor), config.n_levels,
+    )
+    return point_ids[visible], projected[visible], octaves[visible]
+
+
+def project_visible_reference(
+    slam_map: SlamMap, point_ids: np.ndarray, camera_from_world: np.ndarray, camera: Camera, config: OrbFrontendConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slow twin of :func:`project_visible`, in array operations."""
     points = slam_map.points
     positions = points.positions_m[point_ids]
     points_camera = positions @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]

@@ -140,8 +140,13 @@ class OrbExtractor:
         kept, descriptors = self._orb.compute(gray, [detected[i] for i in keep])
         if descriptors is None or not kept:
             return FrameFeatures.empty()
-        points = cv2.KeyPoint_convert(kept).astype(np.float64)
-        octaves = np.fromiter((k.octave for k in kept), np.int32, len(kept))
+        kept_points = cv2.KeyPoint_convert(kept).astype(np.float64)
+        if len(kept) == len(keep) and np.array_equal(kept_points, points[keep]):
+            # cv2 kept every keypoint, in order (the usual case): no need to read the octaves back one by one.
+            octaves = octaves[keep]
+        else:
+            octaves = np.fromiter((k.octave for k in kept), np.int32, len(kept))
+        points = kept_points
         return lift_keypoints(points, octaves, descriptors, rgb, depth_m, camera, config.min_depth_m, config.max_depth_m,
                               config.depth_edge_window_px, config.depth_edge_ratio)
 

@@ -11,6 +11,12 @@ relocalisation against the keyframes; failing that it is reported (warning) and,
 map segment starts, to be joined to the old one by the next loop closure. ``finish()`` runs global BA and
 re-anchors every frame to its reference keyframe.
 
+Keyframe culling (``keyframe_culling``, ORB-SLAM's KeyFrameCulling after local BA) takes redundant keyframes
+out of the map. Every keyframe has already been announced to the pipeline as a ``KeyframeEvent`` by then (the
+event goes out when the keyframe is made), so a culled keyframe is not forgotten: it keeps its id, follows a
+live parent keyframe rigidly (:meth:`SlamMap.cull_keyframe`), and stays in ``keyframe_poses()``, in the
+keyframe trajectory and as the reference of the frames anchored to it, which therefore keep correct poses.
+
 With ``mapping_thread`` (the default) the keyframe work (point fusion, local BA, loop closing) runs in a
 background thread, as ORB-SLAM's local-mapping and loop-closing threads do, while ``track`` goes on with the
 next frames. Keyframes are chosen by the same rules as without the thread; when one is due while the thread
@@ -39,6 +45,7 @@ from tambridge.checkpoint import attribute_state, restore_attributes
 from tambridge.frontend.local_mapping import (
     create_points_from_depth,
     cull_recent_points,
+    cull_redundant_keyframes,
     fuse_with_neighbours,
     global_bundle_adjustment,
     local_bundle_adjustment,
@@ -102,6 +109,7 @@ class OrbFrontend:
         self.frames_lost = 0
         self.frames_relocalised = 0
         self.loops_closed = 0
+        self.keyframes_culled = 0
         self._world_from_first = np.eye(4) if world_from_first_camera is None else np.asarray(world_from_first_camera, float)
         self._records: list[_FrameRecord] = []
         # The last frame's pose, relative to its reference keyframe so that it follows keyframe corrections.
@@ -155,6 +163,9 @@ class OrbFrontend:
         if self._reference is None:
             started = self._start_segment(frame, features)
             return started if started is not None else self._lost(frame, features, "no map to track against")
+        if self._reference.culled:
+            # Culled by the mapping thread since the last frame: its parent stands in for it.
+            self._reference = self.map.keyframes[self._reference.parent]
         camera_from_world_last = self._camera_from_world_last()
         predicted = self._motion @ camera_from_world_last
         grid = build_keypoint_grid(features.keypoints_px, self.camera.width, self.camera.height)
@@ -374,6 +385,12 @@ class OrbFrontend:
                     fuse_with_neighbours(self.map, keyframe, self.camera, config)
             with self._timed("local_ba"):
                 local_bundle_adjustment(self.map, keyframe, self.K, config, self._lock)
+            if config.keyframe_culling:
+                with self._timed("local_ba"), self._lock:
+                    culled = cull_redundant_keyframes(self.map, keyframe, config)
+                    for keyframe_id in culled:
+                        self.database.redirect(keyframe_id, self.map.keyframes[keyframe_id].parent)
+                    self.keyframes_culled += len(culled)
             if config.loop_closure and self._keyframes_since_loop >= config.loop_cooldown_keyframes:
                 with self._timed("loop"), self._lock:
                     loop = detect_loop(self.map, keyframe, self.database, self.camera, config, self._loop_consistency)
@@ -449,7 +466,8 @@ class OrbFrontend:
 
     # ------------------------------------------------------------------ results
     def keyframe_poses(self) -> dict[int, np.ndarray]:
-        """Keyframe id -> ``world_from_camera`` (4, 4) after every correction so far."""
+        """Keyframe id -> ``world_from_camera`` (4, 4) after every correction so far, for every keyframe announced
+        (culled ones at their parent's pose times their relative pose)."""
         with self._lock:
             return {k.id: k.world_from_camera.copy() for k in self.map.keyframes}
 
@@ -487,6 +505,7 @@ class OrbFrontend:
             frames_lost=self.frames_lost,
             frames_relocalised=self.frames_relocalised,
             loops_closed=self.loops_closed,
+            keyframes_culled=self.keyframes_culled,
         )
 
     # ------------------------------------------------------------------ checkpoints

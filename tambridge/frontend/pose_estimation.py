@@ -128,6 +128,59 @@ def pose_normal_equations_reference(camera_from_world, points_world, observation
     return np.einsum("nri,nrj->ij", weighted, jacobian), np.einsum("nri,nr->i", weighted, residual), chi2
 
 
+@numba.njit(cache=True, nogil=True)
+def _exp_se3(xi):
+    """:func:`tambridge.geometry.exp_se3` inside the kernel below (that one is its reference)."""
+    phi_hat = np.zeros((3, 3))
+    phi_hat[0, 1], phi_hat[0, 2], phi_hat[1, 2] = -xi[5], xi[4], -xi[3]
+    phi_hat[1, 0], phi_hat[2, 0], phi_hat[2, 1] = xi[5], -xi[4], xi[3]
+    angle = np.sqrt(xi[3] * xi[3] + xi[4] * xi[4] + xi[5] * xi[5])
+    if angle < 1e-8:
+        rotation = np.eye(3) + phi_hat
+        v = np.eye(3) + 0.5 * phi_hat
+    else:
+        a = np.sin(angle) / angle
+        b = (1.0 - np.cos(angle)) / angle**2
+        c = (1.0 - a) / angle**2
+        phi_hat2 = phi_hat @ phi_hat
+        rotation = np.eye(3) + a * phi_hat + b * phi_hat2
+        v = np.eye(3) + b * phi_hat + c * phi_hat2
+    out = np.eye(4)
+    out[:3, :3] = rotation
+    out[:3, 3] = v @ np.ascontiguousarray(xi[:3])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _refine_pose_kernel(camera_from_world, points_world, observations, weights, thresholds, rounds, iterations,
+                        fx, fy, cx, cy):
+    n = points_world.shape[0]
+    inliers = np.ones(n, np.bool_)
+    none_active = np.zeros(n, np.bool_)
+    for round_index in range(rounds):
+        robust = round_index < rounds - 1
+        for _ in range(iterations):
+            if inliers.sum() < 3:
+                break
+            hessian, gradient, _ = _pose_normal_equations(
+                np.ascontiguousarray(camera_from_world[:3, :3]), np.ascontiguousarray(camera_from_world[:3, 3]),
+                points_world, observations, weights, thresholds, inliers, robust, fx, fy, cx, cy)
+            try:
+                delta = -np.linalg.solve(hessian + 1e-9 * np.eye(6), gradient)
+            except Exception:  # noqa: BLE001 - numba catches no narrower class; a singular system ends the round
+                break
+            camera_from_world = _exp_se3(delta) @ camera_from_world
+            if np.sqrt((delta * delta).sum()) < 1e-6:
+                break
+        chi2 = _pose_normal_equations(
+            np.ascontiguousarray(camera_from_world[:3, :3]), np.ascontiguousarray(camera_from_world[:3, 3]),
+            points_world, observations, weights, thresholds, none_active, False, fx, fy, cx, cy)[2]
+        inliers = chi2 <= thresholds
+        if inliers.sum() < 10:
+            break
+    return camera_from_world, inliers
+
+
 def refine_pose(
     camera_from_world: np.ndarray,
     points_world: np.ndarray,
@@ -144,7 +197,30 @@ def refine_pose(
     :mod:`~tambridge.frontend.reprojection`); ``inv_sigma2`` (N,); ``depth_noise_per_m`` k of sigma_z = k z^2
     (0: no depth rows). Each round optimises over the current inliers, then re-classifies every match by its
     chi2 (95% quantile); the last round drops the Huber kernel. Returns ``(camera_from_world 4x4, inliers (N,))``.
+    The whole loop runs in one numba kernel (it ran twice per tracked frame, about 17 Gauss-Newton steps each,
+    and the Python around each step cost more than the step); :func:`refine_pose_reference` is its slow twin.
     """
+    weights = row_weights(observations, inv_sigma2, depth_noise_per_m)
+    camera_from_world, inliers = _refine_pose_kernel(
+        np.array(camera_from_world, np.float64), np.ascontiguousarray(points_world, np.float64),
+        np.ascontiguousarray(observations, np.float64), np.ascontiguousarray(weights, np.float64),
+        np.ascontiguousarray(chi2_thresholds(weights), np.float64), rounds, iterations, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+    )
+    # Frame poses chain (prior = motion @ previous pose): keep the rounding of exp products off SO(3) from growing.
+    return orthonormalised(camera_from_world), inliers
+
+
+def refine_pose_reference(
+    camera_from_world: np.ndarray,
+    points_world: np.ndarray,
+    observations: np.ndarray,
+    inv_sigma2: np.ndarray,
+    K: np.ndarray,
+    depth_noise_per_m: float,
+    rounds: int = 4,
+    iterations: int = 10,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Slow twin of :func:`refine_pose`: the same loop in Python over :func:`pose_normal_equations_reference`."""
     weights = row_weights(observations, inv_sigma2, depth_noise_per_m)
     thresholds = chi2_thresholds(weights)
     inliers = np.ones(len(points_world), bool)
@@ -153,8 +229,8 @@ def refine_pose(
         for _ in range(iterations):
             if inliers.sum() < 3:
                 break
-            hessian, gradient, _ = pose_normal_equations(camera_from_world, points_world, observations, weights,
-                                                         thresholds, inliers, robust, K)
+            hessian, gradient, _ = pose_normal_equations_reference(camera_from_world, points_world, observations, weights,
+                                                                   thresholds, inliers, robust, K)
             try:
                 delta = -np.linalg.solve(hessian + 1e-9 * np.eye(6), gradient)
             except np.linalg.LinAlgError:
@@ -162,10 +238,9 @@ def refine_pose(
             camera_from_world = exp_se3(delta) @ camera_from_world
             if np.linalg.norm(delta) < 1e-6:
                 break
-        chi2 = pose_normal_equations(camera_from_world, points_world, observations, weights, thresholds,
-                                     np.zeros(len(points_world), bool), False, K)[2]
+        chi2 = pose_normal_equations_reference(camera_from_world, points_world, observations, weights, thresholds,
+                                               np.zeros(len(points_world), bool), False, K)[2]
         inliers = chi2 <= thresholds
         if inliers.sum() < 10:
             break
-    # Frame poses chain (prior = motion @ previous pose): keep the rounding of exp products off SO(3) from growing.
     return orthonormalised(camera_from_world), inliers

@@ -3,7 +3,10 @@
 Map points live in growable arrays indexed by point id (``MapPoints``); a keyframe records, per keypoint, the
 id of the map point it observes (-1 for none), which is the one place observations are stored. Point-centric
 questions ("who sees these points") loop over keyframes, never over points. Bad points are flagged, not
-deleted, and skipped wherever ids are read.
+deleted, and skipped wherever ids are read. Culled keyframes likewise stay in the list (a keyframe's id is its
+position, and the pipeline anchors Gaussians to it) but lose their observations and covisibility; each keeps its
+pose relative to a live ``parent`` keyframe, as ORB-SLAM's culled keyframes do, and
+:meth:`SlamMap.update_culled_poses` carries them along when their parents move.
 """
 
 from __future__ import annotations
@@ -20,7 +23,11 @@ from tambridge.geometry import inverse
 @dataclasses.dataclass
 class Keyframe:
     """A keyframe: its features, the map point id per keypoint (N,) int64 (-1 none), bag-of-words vector,
-    covisibility weights (other keyframe id -> shared points) and the map segment it belongs to."""
+    covisibility weights (other keyframe id -> shared points) and the map segment it belongs to.
+
+    A culled keyframe has ``parent`` >= 0, the live keyframe it follows, and ``parent_from_camera`` (4, 4); its
+    ``point_ids`` are all -1 and its ``covisibility`` is empty.
+    """
 
     id: int
     frame_index: int
@@ -32,6 +39,12 @@ class Keyframe:
     bow_words: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
     bow_weights: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     covisibility: dict[int, int] = dataclasses.field(default_factory=dict)
+    parent: int = -1
+    parent_from_camera: np.ndarray | None = None
+
+    @property
+    def culled(self) -> bool:
+        return self.parent >= 0
 
     @property
     def camera_from_world(self) -> np.ndarray:
@@ -174,17 +187,20 @@ class SlamMap:
     def update_covisibility(self, keyframe: Keyframe, min_shared: int) -> None:
         """Recount the points this keyframe shares with every other keyframe; keep pairs with >= ``min_shared``
         (or the single best pair if none reaches it, so the graph stays connected)."""
-        mask = np.zeros(self.points.count, bool)
+        mask = np.zeros(self.points.count + 1, bool)  # the last entry stands for "no point" (id -1)
         mask[self.good_point_ids(keyframe)] = True
+        others = [other for other in self.keyframes if other.id != keyframe.id]
+        if not others:
+            keyframe.covisibility = {}
+            return
+        owner = np.repeat(np.arange(len(others)), [len(other.point_ids) for other in others])
+        hits = mask[np.concatenate([other.point_ids for other in others])]
+        shared = np.bincount(owner[hits], minlength=len(others))
         counts = {}
-        for other in self.keyframes:
-            if other.id == keyframe.id:
-                continue
-            ids = other.point_ids[other.point_ids >= 0]
-            shared = int(mask[ids].sum())
+        for other, count in zip(others, shared.tolist()):
             other.covisibility.pop(keyframe.id, None)
-            if shared > 0:
-                counts[other.id] = shared
+            if count > 0:
+                counts[other.id] = count
         kept = {k: w for k, w in counts.items() if w >= min_shared}
         if not kept and counts:
             best = max(counts, key=counts.get)
@@ -231,6 +247,42 @@ class SlamMap:
         self.points.bad[old_ids] = True
         self.recount_observations()
 
+    def cull_keyframe(self, keyframe: Keyframe, parent: Keyframe) -> None:
+        """Take a redundant keyframe out of the map (ORB-SLAM's KeyFrame::SetBadFlag): it drops its observations
+        and covisibility links and from now on follows ``parent`` (live) rigidly, as do the keyframes culled
+        earlier with it as their parent. Points it alone saw go bad; points it was the reference of move to
+        another observer (or go bad when no keyframe sees them)."""
+        assert not parent.culled and parent.id != keyframe.id
+        keyframe.parent_from_camera = parent.camera_from_world @ keyframe.world_from_camera
+        keyframe.parent = parent.id
+        for child in self.keyframes:
+            if child.parent == keyframe.id:
+                child.parent_from_camera = keyframe.parent_from_camera @ child.parent_from_camera
+                child.parent = parent.id
+        for other in keyframe.covisibility:
+            self.keyframes[other].covisibility.pop(keyframe.id, None)
+        keyframe.covisibility = {}
+        seen = keyframe.point_ids[keyframe.point_ids >= 0]
+        keyframe.point_ids[:] = -1
+        self.recount_observations()
+        points = self.points
+        points.bad[seen[points.observations[seen] == 0]] = True
+        n = points.count
+        moving = np.flatnonzero(~points.bad[:n] & (points.reference_keyframe[:n] == keyframe.id))
+        if moving.size:
+            # The most recent keyframe observing the point becomes its reference; a point nobody sees goes bad.
+            latest = np.full(n, -1, np.int64)
+            for other in self.keyframes:
+                latest[other.point_ids[other.point_ids >= 0]] = other.id
+            points.reference_keyframe[moving] = np.maximum(latest[moving], 0)
+            points.bad[moving[latest[moving] < 0]] = True
+
+    def update_culled_poses(self) -> None:
+        """Put every culled keyframe back at its parent's pose times its relative pose (after poses changed)."""
+        for keyframe in self.keyframes:
+            if keyframe.culled:
+                keyframe.world_from_camera = self.keyframes[keyframe.parent].world_from_camera @ keyframe.parent_from_camera
+
     def move_points_with_keyframes(self, world_from_camera_before: np.ndarray) -> None:
         """After keyframe poses changed, carry each good point with its reference keyframe.
 
@@ -260,7 +312,9 @@ class SlamMap:
 
     def points_of(self, keyframes: list[Keyframe]) -> np.ndarray:
         """Sorted unique good point ids seen by any of the keyframes."""
-        if not keyframes:
-            return np.zeros(0, np.int64)
-        ids = np.unique(np.concatenate([k.point_ids for k in keyframes]))
-        return ids[self.points.good(ids)]
+        # A mask over all points rather than np.unique: this runs twice per tracked frame, and sorting the
+        # local map's observations took longer than marking them.
+        seen = np.zeros(self.points.count, bool)
+        for keyframe in keyframes:
+            seen[keyframe.point_ids[keyframe.point_ids >= 0]] = True
+        return np.flatnonzero(seen & ~self.points.bad[: self.points.count])

@@ -178,15 +178,25 @@ class KeyframeDatabase:
         self._word: list[np.ndarray] = []
         self._weight: list[np.ndarray] = []
         self._tables: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # Keyframe id -> the keyframe a match with it counts for (itself unless redirected).
+        self._owner = np.zeros(0, np.int64)
 
     def add(self, keyframe_id: int, words: np.ndarray, weights: np.ndarray) -> None:
+        if keyframe_id >= len(self._owner):
+            self._owner = np.append(self._owner, np.arange(len(self._owner), keyframe_id + 1))
         self._keyframe.append(np.full(len(words), keyframe_id, np.int64))
         self._word.append(words)
         self._weight.append(weights)
         self._tables = None
 
+    def redirect(self, keyframe_id: int, to_keyframe_id: int) -> None:
+        """From now on a match with ``keyframe_id`` (a culled keyframe), or with any keyframe redirected to it,
+        counts for ``to_keyframe_id`` (its parent): the place it saw stays retrievable, through a live keyframe."""
+        self._owner[self._owner == keyframe_id] = to_keyframe_id
+
     def query(self, words: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(keyframe ids (K,), scores (K,))`` of every keyframe with a score above zero, best first."""
+        """``(keyframe ids (K,), scores (K,))`` of every keyframe with a score above zero, best first; a keyframe
+        others are redirected to scores the best of its own score and theirs."""
         if not self._keyframe:
             return np.zeros(0, np.int64), np.zeros(0)
         if self._tables is None:
@@ -196,6 +206,11 @@ class KeyframeDatabase:
         dense[words] = weights
         contribution = np.minimum(table_weights, dense[table_words])
         scores = np.bincount(keyframes, weights=contribution)
+        owner = self._owner[: len(scores)]
+        if (owner != np.arange(len(scores))).any():
+            owned = np.zeros(max(len(scores), int(owner.max()) + 1))
+            np.maximum.at(owned, owner, scores)
+            scores = owned
         ids = np.flatnonzero(scores > 0)
         order = np.argsort(-scores[ids], kind="stable")
         return ids[order], scores[ids][order]
