@@ -19,7 +19,7 @@ from tambridge.trajectory import Trajectory
 # As tests/test_frontend_orb.py: ORB settings for 160x120, depth residuals on (registered synthetic depth). A
 # keyframe at every frame that tracks fewer points than its reference keyframe: a lingering camera then makes
 # many keyframes that see the same things.
-LINGER = dict(n_features=500, n_levels=4, edge_threshold_px=10, grid_cell_px=16, depth_residuals=True,
+LINGER = dict(n_features=500, n_levels=4, edge_threshold_px=10, grid_cell_px=16, scale_with_image=False, depth_residuals=True,
               depth_noise_per_m=0.003, keyframe_min_frames=1, keyframe_tracked_ratio=1.0, mapping_thread=False)
 FRAMES = 30
 

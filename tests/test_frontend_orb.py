@@ -7,16 +7,15 @@ import pytest
 
 from tambridge.evaluation.trajectory import ate_rmse_m
 from tambridge.frontend.orb_frontend import OrbFrontend
-from tambridge.frontend.types import OrbFrontendConfig
+from tambridge.frontend.types import OrbFrontendConfig, scaled_for_image
 from tambridge.geometry import inverse, look_at
 from tambridge.io.synthetic import default_camera, make_room_scene, render
 from tambridge.io.tum import Frame, open_sequence
 from tambridge.trajectory import Trajectory
 
-# 160x120 leaves little room for ORB's pyramid and border: fewer features, four levels, a narrow border.
+# The 640x480 defaults scaled to 160x120 (scaled_for_image: 750 features, four levels, a 10 px border).
 # The synthetic depth is registered and exact up to 1/5000 m steps: depth residuals on, with a small noise.
-SMALL_IMAGE = dict(n_features=500, n_levels=4, edge_threshold_px=10, grid_cell_px=16, depth_residuals=True,
-                   depth_noise_per_m=0.003)
+SMALL_IMAGE = dict(depth_residuals=True, depth_noise_per_m=0.003)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +35,7 @@ def test_ate_on_synthetic_loop(sequence, tracked):
     assert all(r.tracked for r in results)
     assert final.frames_lost == 0
     assert len(final.trajectory) == len(sequence)
-    # Measured 1.0 cm inline and 1.4 cm with the mapping thread (30 frames, 160x120, noise-free); 2 cm leaves
+    # Measured 1.07 cm inline and 1.28 cm with the mapping thread (30 frames, 160x120, noise-free); 2 cm leaves
     # margin for thread timing and platform differences.
     assert ate_rmse_m(final.trajectory, sequence.ground_truth) < 0.02
     assert set(final.timings_s) == {"features", "matching", "pnp", "local_ba", "loop", "global_ba"}
@@ -103,8 +102,8 @@ def _panorama(frame_count: int, seed: int) -> tuple[list[Frame], np.ndarray, obj
 
 
 def _end_drift(frames, ground_truth, camera, loop_closure: bool) -> tuple[float, float, int]:
-    config = OrbFrontendConfig(n_features=800, n_levels=5, edge_threshold_px=12, grid_cell_px=20, depth_residuals=True, depth_noise_per_m=0.003,
-                               mapping_thread=False,
+    config = OrbFrontendConfig(n_features=800, n_levels=5, edge_threshold_px=12, grid_cell_px=20, scale_with_image=False,
+                               depth_residuals=True, depth_noise_per_m=0.003, mapping_thread=False,
                                loop_closure=loop_closure, global_ba=loop_closure)
     frontend = OrbFrontend(camera, config)
     for frame in frames:
@@ -126,3 +125,19 @@ def test_loop_closure_cuts_end_point_drift_in_half():
     assert drift_open > 0.01
     assert drift_closed < 0.5 * drift_open
     assert angle_closed < 0.5 * angle_open
+
+
+def test_settings_scale_with_the_image_and_stay_as_given_without_scaling():
+    config = OrbFrontendConfig()
+    assert scaled_for_image(config, 640, 480) is config
+    small = scaled_for_image(config, 160, 120)
+    assert (small.n_features, small.n_levels, small.edge_threshold_px, small.grid_cell_px) == (750, 4, 10, 16)
+    assert (small.keyframe_close_tracked, small.keyframe_close_untracked, small.min_new_points) == (100, 70, 100)
+    # The coarsest level keeps at least 64 px on the short side: 120 / 1.2^3 = 69 px.
+    assert 120 / small.scale_factor ** (small.n_levels - 1) >= 64 > 120 / small.scale_factor**small.n_levels
+    # Error thresholds in pixels do not scale.
+    assert (small.pnp_reprojection_px, small.search_radius_px) == (config.pnp_reprojection_px, config.search_radius_px)
+    large = scaled_for_image(config, 1280, 960)
+    assert large.n_features == 2121 and large.n_levels == 8
+    fixed = OrbFrontendConfig(scale_with_image=False)
+    assert scaled_for_image(fixed, 160, 120) is fixed

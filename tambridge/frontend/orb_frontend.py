@@ -62,6 +62,7 @@ from tambridge.frontend.types import (
     OrbFrontendConfig,
     TrackResult,
     empty_timings,
+    scaled_for_image,
 )
 from tambridge.frontend.vocabulary import KeyframeDatabase, Vocabulary
 from tambridge.geometry import inverse
@@ -99,7 +100,7 @@ class OrbFrontend:
     ) -> None:
         self.camera = camera
         # A fresh default each time: the config dataclasses are mutable (``--set`` writes into them).
-        self.config = config if config is not None else OrbFrontendConfig()
+        self.config = scaled_for_image(config if config is not None else OrbFrontendConfig(), camera.width, camera.height)
         self.K = camera.K
         self.map = SlamMap()
         self.extractor = OrbExtractor(camera, self.config)
@@ -333,7 +334,8 @@ class OrbFrontend:
         matched = np.zeros(len(features), bool)
         matched[fix.keypoint_indices] = True
         close = features.has_depth & (features.depth_m < config.close_depth_m)
-        need_close = int((close & matched).sum()) < 100 and int((close & ~matched).sum()) > 70
+        need_close = (int((close & matched).sum()) < config.keyframe_close_tracked
+                      and int((close & ~matched).sum()) > config.keyframe_close_untracked)
         ratio = 0.4 if len(self.map.keyframes) < 2 else config.keyframe_tracked_ratio
         inliers = fix.inlier_count
         c1b = self._frames_since_keyframe >= config.keyframe_min_frames
