@@ -144,14 +144,18 @@ def _parse_size(size: str) -> tuple[int, int]:
 @click.option("--depth-noise", type=float, default=0.0, help="Depth noise sigma at 1 m, metres (grows with z^2).")
 @click.option("--colour-noise", type=float, default=0.0, help="Colour noise sigma, in [0, 1] units.")
 @click.option("--motion-blur", type=int, default=1, help="Sub-frames averaged per frame (1 = none).")
+@click.option("--supersampling", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Odd k: k x k rays per pixel averaged (anti-aliased colour, as a camera's pixel integrates); ~k^2 slower.")
 @click.option("--seed", type=int, default=0)
-def synth(output_dir, frames, size, depth_noise, colour_noise, motion_blur, seed) -> None:
+def synth(output_dir, frames, size, depth_noise, colour_noise, motion_blur, supersampling, seed) -> None:
     """Write a synthetic TUM-layout sequence (textured room, closed loop) with exact ground truth."""
     from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
 
     width, height = _parse_size(size)
+    if supersampling % 2 == 0:
+        raise click.BadParameter(f"{supersampling}: must be odd (the centre ray gives the depth)", param_hint="--supersampling")
     options = SynthOptions(frames, width, height, depth_noise_m=depth_noise, colour_noise=colour_noise,
-                           motion_blur_samples=motion_blur, seed=seed)
+                           motion_blur_samples=motion_blur, supersampling=supersampling, seed=seed)
     write_synthetic_sequence(output_dir, options)
     click.echo(f"wrote {frames} frames to {output_dir}")
 
