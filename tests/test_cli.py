@@ -11,6 +11,7 @@ from click.testing import CliRunner
 
 from cli import main
 from tambridge.config import ConfigError, load_config
+from tambridge.io.tum import open_sequence
 from tambridge.trajectory import read_tum_trajectory
 
 
@@ -126,3 +127,18 @@ def test_atomic_writes_leave_no_temp_files_and_normal_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert target.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_synth_writes_a_supersampled_sequence_and_refuses_an_even_factor(tmp_path):
+    runner = CliRunner()
+    result = runner.invoke(main, ["synth", str(tmp_path / "s"), "--frames", "2", "--size", "32x24", "--supersampling", "3"])
+    assert result.exit_code == 0, result.output
+    sequence = open_sequence(tmp_path / "s")
+    assert len(sequence) == 2 and sequence[0].rgb.shape == (24, 32, 3)
+    # Averaged rays: colours between texture values appear that one ray per pixel would not give.
+    plain = runner.invoke(main, ["synth", str(tmp_path / "p"), "--frames", "2", "--size", "32x24"])
+    assert plain.exit_code == 0
+    assert not np.array_equal(open_sequence(tmp_path / "p")[0].rgb, sequence[0].rgb)
+    np.testing.assert_array_equal(open_sequence(tmp_path / "p")[0].depth_m, sequence[0].depth_m)
+    refused = runner.invoke(main, ["synth", str(tmp_path / "e"), "--supersampling", "2"])
+    assert refused.exit_code == 2 and "must be odd" in refused.output
