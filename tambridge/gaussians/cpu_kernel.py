@@ -10,7 +10,7 @@ independent, so both passes run one tile per thread (``prange``).
 
 Within a tile the Gaussians are *splatted*: each entry visits only the pixels of its 3-sigma disc, in list order,
 updating that pixel's running transmittance and sums. For the one-pixel Gaussians the mapper creates this costs
-~30 pixel updates per entry instead of the 256 of a per-pixel gather over the tile's list, with the same result:
+~30 pixel updates per entry instead of the 1024 of a per-pixel gather over the tile's list, with the same result:
 every pixel still sees its Gaussians in depth order. A pixel is marked done when compositing stops there (3DGS
 rule: the Gaussian that would bring T below ``TRANSMITTANCE_MIN`` is left out), a tile when all its pixels are.
 Both passes evaluate a Gaussian's footprint with the same helpers (:func:`_footprint`, :func:`_row_span`), so
@@ -34,8 +34,10 @@ import numpy as np
 
 from tambridge.gaussians.model import ALPHA_MAX, NEAR_PLANE_M, SIGMA_CUTOFF, TRANSMITTANCE_MIN
 
-TILE_PX = 16
-"""Tile side, pixels."""
+TILE_PX = 32
+"""Tile side, pixels. 32 rather than GPU rasterisers' 16: a Gaussian whose box crosses a tile border is listed (and
+its footprint evaluated) once per tile, and at 640x480 with 200k one-pixel Gaussians 32 px tiles hold 24 % fewer
+entries (1.3 instead of 1.7 per Gaussian), which the binning, both passes and the gradient sum all scale with."""
 BOX_SLACK_PX = 1e-3
 """The pixel box of a Gaussian is widened by this so that rounding never drops a pixel the 3-sigma test keeps."""
 
