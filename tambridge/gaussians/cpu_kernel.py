@@ -247,17 +247,16 @@ OFFSET, DISTANCE_SQ, FALLOFF = 0, 1, 2
 
 
 @numba.njit(cache=True, inline="always")
-def _axis_falloff(centre, lo, hi, half_inv_radius_sq, step_ratio, axis):
-    """For pixels lo..hi on one axis: ``axis[OFFSET, k]`` = p - centre, ``axis[DISTANCE_SQ, k]`` = offset^2 / r^2 and
-    ``axis[FALLOFF, k]`` = exp(-offset^2 / 2r^2), k = p - lo.
+def _axis_falloff(offset, count, half_inv_radius_sq, step_ratio, value, axis):
+    """For the ``count`` pixels k = 0.. of one axis of a box whose first pixel lies ``offset`` from the centre:
+    ``axis[OFFSET, k]`` = offset + k, ``axis[DISTANCE_SQ, k]`` = (offset + k)^2 / r^2 and ``axis[FALLOFF, k]`` =
+    ``value`` * exp(-((offset + k)^2 - offset^2) / 2r^2).
 
     exp(-|d|^2 / 2r^2) = exp(-dx^2 / 2r^2) exp(-dy^2 / 2r^2), so a box needs per-axis factors only, and along an
-    axis they follow f_{k+1} = f_k g_k, g_{k+1} = g_k exp(-1 / r^2) (``step_ratio``): three exps per axis.
+    axis they follow f_{k+1} = f_k g_k, g_{k+1} = g_k exp(-1 / r^2) (``step_ratio``): one exp per axis for g_0.
     """
-    offset = lo - centre
-    value = math.exp(-half_inv_radius_sq * offset * offset)
     ratio = math.exp(-half_inv_radius_sq * (2.0 * offset + 1.0))
-    for k in range(hi - lo + 1):
+    for k in range(count):
         axis[OFFSET, k] = offset + k
         axis[DISTANCE_SQ, k] = 2.0 * half_inv_radius_sq * axis[OFFSET, k] * axis[OFFSET, k]
         axis[FALLOFF, k] = value
@@ -282,8 +281,12 @@ def _footprint(row, x0, x1, y0, y1, x_axis, y_axis):
     radius = np.float64(row[RADIUS])
     half_inv_radius_sq = 0.5 / (radius * radius)
     step_ratio = math.exp(-2.0 * half_inv_radius_sq)
-    _axis_falloff(np.float64(row[U]), x0, x1, half_inv_radius_sq, step_ratio, x_axis)
-    _axis_falloff(np.float64(row[V]), y0, y1, half_inv_radius_sq, step_ratio, y_axis)
+    offset_x, offset_y = x0 - np.float64(row[U]), y0 - np.float64(row[V])
+    # Only products x * y of the factors are ever used, so the box corner's exp(-|d|^2 / 2r^2) goes whole into the
+    # y factors and the x factors start at 1: four exps per entry instead of five.
+    corner = math.exp(-half_inv_radius_sq * (offset_x * offset_x + offset_y * offset_y))
+    _axis_falloff(offset_x, x1 - x0 + 1, half_inv_radius_sq, step_ratio, 1.0, x_axis)
+    _axis_falloff(offset_y, y1 - y0 + 1, half_inv_radius_sq, step_ratio, corner, y_axis)
     return half_inv_radius_sq
 
 
@@ -302,6 +305,10 @@ def _row_span(x_axis, x_count, y_distance_sq):
     return kx_lo, kx_hi
 
 
+# Columns of the forward pass's per-pixel state.
+_PIXEL_T, _PIXEL_RED, _PIXEL_DEPTH, _PIXEL_SILHOUETTE = 0, 1, 4, 5
+
+
 @numba.njit(parallel=True, cache=True)
 def _forward(entry_rows, tile_starts, tiles_x, tile_px, background, out_rgb, out_depth, out_silhouette, out_transmittance, out_contributors):
     height, width = out_depth.shape
@@ -311,10 +318,10 @@ def _forward(entry_rows, tile_starts, tiles_x, tile_px, background, out_rgb, out
         y_hi = min(y_lo + tile_px, height) - 1
         x_hi = min(x_lo + tile_px, width) - 1
         tile_h, tile_w = y_hi - y_lo + 1, x_hi - x_lo + 1
-        transmittance = np.ones((tile_h, tile_w))
-        colour = np.zeros((tile_h, tile_w, 3))
-        depth = np.zeros((tile_h, tile_w))
-        silhouette = np.zeros((tile_h, tile_w))
+        # One array for what a pixel update reads and writes (one address per update instead of five, -10% time):
+        # transmittance, then the sums of colour, depth and silhouette.
+        pixels = np.zeros((tile_h, tile_w, 6))
+        pixels[:, :, _PIXEL_T] = 1.0
         contributors = np.zeros((tile_h, tile_w), np.int32)
         done = np.zeros((tile_h, tile_w), np.bool_)
         x_axis, y_axis = np.empty((3, tile_w)), np.empty((3, tile_h))
@@ -337,27 +344,29 @@ def _forward(entry_rows, tile_starts, tiles_x, tile_px, background, out_rgb, out
                         continue
                     raw_alpha = opacity * x_axis[FALLOFF, kx] * y_axis[FALLOFF, ky]
                     alpha = min(raw_alpha, ALPHA_MAX)
-                    t = transmittance[ly, lx]
+                    pixel = pixels[ly, lx]
+                    t = pixel[_PIXEL_T]
                     t_next = t * (1.0 - alpha)
                     if t_next < TRANSMITTANCE_MIN:
                         done[ly, lx] = True
                         pixels_left -= 1
                         continue
                     weight = alpha * t
-                    colour[ly, lx, 0] += weight * red
-                    colour[ly, lx, 1] += weight * green
-                    colour[ly, lx, 2] += weight * blue
-                    depth[ly, lx] += weight * z
-                    silhouette[ly, lx] += weight
-                    transmittance[ly, lx] = t_next
+                    pixel[_PIXEL_RED] += weight * red
+                    pixel[_PIXEL_RED + 1] += weight * green
+                    pixel[_PIXEL_RED + 2] += weight * blue
+                    pixel[_PIXEL_DEPTH] += weight * z
+                    pixel[_PIXEL_SILHOUETTE] += weight
+                    pixel[_PIXEL_T] = t_next
                     contributors[ly, lx] = entry - start + 1
         for ly in range(tile_h):
             for lx in range(tile_w):
+                pixel = pixels[ly, lx]
                 for channel in range(3):
-                    out_rgb[y_lo + ly, x_lo + lx, channel] = colour[ly, lx, channel] + transmittance[ly, lx] * background[channel]
-                out_depth[y_lo + ly, x_lo + lx] = depth[ly, lx]
-                out_silhouette[y_lo + ly, x_lo + lx] = silhouette[ly, lx]
-                out_transmittance[y_lo + ly, x_lo + lx] = transmittance[ly, lx]
+                    out_rgb[y_lo + ly, x_lo + lx, channel] = pixel[_PIXEL_RED + channel] + pixel[_PIXEL_T] * background[channel]
+                out_depth[y_lo + ly, x_lo + lx] = pixel[_PIXEL_DEPTH]
+                out_silhouette[y_lo + ly, x_lo + lx] = pixel[_PIXEL_SILHOUETTE]
+                out_transmittance[y_lo + ly, x_lo + lx] = pixel[_PIXEL_T]
                 out_contributors[y_lo + ly, x_lo + lx] = contributors[ly, lx]
 
 
