@@ -187,13 +187,16 @@ def _fill_tiles(packed, sorted_keys, visible_count, width, height, tile_px, tile
             order[k] = i
             for column in range(PACKED_COLUMNS):
                 sorted_rows[k, column] = packed[i, column]
+        counts = chunk_tile_counts[chunk]
         for k in range(first, last):
+            # Box bounds in locals: numba assumes any array store may alias, so loop bounds read back from
+            # sorted_boxes would be reloaded after every count update.
             tx0, tx1, ty0, ty1 = _tile_box(sorted_rows[k], width, height, tile_px)
             sorted_boxes[k, 0], sorted_boxes[k, 1], sorted_boxes[k, 2], sorted_boxes[k, 3] = tx0, tx1, ty0, ty1
-            slot_starts[k + 1] = (sorted_boxes[k, 1] - sorted_boxes[k, 0] + 1) * (sorted_boxes[k, 3] - sorted_boxes[k, 2] + 1)
-            for ty in range(sorted_boxes[k, 2], sorted_boxes[k, 3] + 1):
-                for tx in range(sorted_boxes[k, 0], sorted_boxes[k, 1] + 1):
-                    chunk_tile_counts[chunk, ty * tiles_x + tx] += 1
+            slot_starts[k + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
+                    counts[ty * tiles_x + tx] += 1
     slot_starts[0] = 0
     for k in range(visible_count):
         slot_starts[k + 1] += slot_starts[k]
@@ -210,14 +213,18 @@ def _fill_tiles(packed, sorted_keys, visible_count, width, height, tile_px, tile
     slot_entries = np.empty(total, np.int64)
     for chunk in numba.prange(chunk_count):
         cursors = chunk_cursors[chunk]
+        row = np.empty(PACKED_COLUMNS, entry_rows.dtype)  # in locals for the same reason
         for k in range(chunk * chunk_size, min(visible_count, (chunk + 1) * chunk_size)):
             slot = slot_starts[k]
-            for ty in range(sorted_boxes[k, 2], sorted_boxes[k, 3] + 1):
-                for tx in range(sorted_boxes[k, 0], sorted_boxes[k, 1] + 1):
+            tx0, tx1, ty0, ty1 = sorted_boxes[k, 0], sorted_boxes[k, 1], sorted_boxes[k, 2], sorted_boxes[k, 3]
+            for column in range(PACKED_COLUMNS):
+                row[column] = sorted_rows[k, column]
+            for ty in range(ty0, ty1 + 1):
+                for tx in range(tx0, tx1 + 1):
                     entry = cursors[ty * tiles_x + tx]
                     cursors[ty * tiles_x + tx] = entry + 1
                     for column in range(PACKED_COLUMNS):
-                        entry_rows[entry, column] = sorted_rows[k, column]
+                        entry_rows[entry, column] = row[column]
                     slot_entries[slot] = entry
                     slot += 1
     return entry_rows, slot_entries, tile_starts, order, slot_starts
