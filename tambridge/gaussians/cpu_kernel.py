@@ -1,4 +1,5 @@
-"""Numba kernels of the CPU rasteriser: tile binning, forward compositing and its exact backward pass.
+"""Numba kernels of the CPU rasteriser: tile binning, forward compositing and its exact backward pass, and (for
+renders that need no gradients) the projection to screen space.
 
 Layout. The image is cut into ``TILE_PX`` x ``TILE_PX`` tiles. Each visible Gaussian is listed in every tile its
 3-sigma box overlaps, each tile's list in front-to-back order (one global sort of unique int64 depth keys, then a

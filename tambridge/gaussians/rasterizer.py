@@ -4,7 +4,9 @@
 them in torch (so autograd carries the pose and projection chain), then composites with one of three backends:
 
 - ``"cpu"``: the numba tile kernels of :mod:`tambridge.gaussians.cpu_kernel` behind a ``torch.autograd.Function``
-  (the path that ships; exact forward and backward of the image model in :mod:`tambridge.gaussians.model`);
+  (the path that ships; exact forward and backward of the image model in :mod:`tambridge.gaussians.model`). When
+  autograd records nothing (``torch.no_grad()`` or no input requiring gradients: evaluation, viewer, meshing) the
+  projection runs in numba too and nothing is kept for a backward pass (:func:`render_cpu_untracked`);
 - ``"gsplat"``: gsplat's CUDA rasteriser (:mod:`tambridge.gaussians.gsplat_backend`);
 - ``"reference"``: the dense torch twin (:mod:`tambridge.gaussians.reference`), for tests.
 
@@ -90,15 +92,15 @@ def render_cpu_untracked(
     camera_from_world: (4, 4) float64. Outputs in the Gaussians' dtype and device, not differentiable.
     """
     dtype = gaussians.means_m.dtype
-    # float64 rows (and arithmetic) for float64 Gaussians, else float32, as torch would compute the projection.
+    # float64 Gaussians are projected in float64, float32 (and others) in float32, as torch projects them.
     storage = torch.float64 if dtype == torch.float64 else torch.float32
-    fields = [tensor.detach().to("cpu", storage).contiguous().numpy() for tensor in (gaussians.means_m, gaussians.log_radii_m, gaussians.opacity_logits, gaussians.rgb)]
+    fields = (gaussians.means_m, gaussians.log_radii_m, gaussians.opacity_logits, gaussians.rgb)
+    arrays = [field.detach().to("cpu", storage).contiguous().numpy() for field in fields]
     intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)
-    packed = cpu_kernel.project(*fields, camera_from_world.detach().cpu().numpy(), intrinsics)
+    packed = cpu_kernel.project(*arrays, camera_from_world.detach().cpu().numpy(), intrinsics)
     bins = cpu_kernel.bin_tiles(packed, camera.width, camera.height)
-    maps = cpu_kernel.composite_forward(
-        bins, camera.width, camera.height, np.asarray(background_rgb, np.float64), np.float64 if dtype == torch.float64 else np.float32
-    )[:3]
+    background = np.asarray(background_rgb, np.float64)
+    maps = cpu_kernel.composite_forward(bins, camera.width, camera.height, background, packed.dtype)[:3]
     device = gaussians.means_m.device
     return RenderOutput(*(torch.from_numpy(image).to(device=device, dtype=dtype) for image in maps))
 
