@@ -9,7 +9,7 @@ import torch
 from tambridge.camera import Camera
 from tambridge.geometry import exp_se3, look_at
 from tambridge.gaussians import GaussianTensors, ScreenGaussians, cpu_kernel, render
-from tambridge.gaussians.model import camera_frame_means, project_to_screen
+from tambridge.gaussians.model import camera_frame_means, camera_from_world_tensor, project_to_screen
 from tambridge.gaussians.rasterizer import composite_cpu
 from tambridge.gaussians.reference import composite_reference
 
@@ -77,6 +77,49 @@ def test_cpu_kernel_matches_reference(count, width, height, opacity_logit_mean, 
         scale = expected.abs().max()
         assert scale > 0, name
         assert (actual - expected).abs().max() <= 1e-4 * scale, name
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("count,width,height,opacity_logit_mean,largest_radius_m", CASES[2:])
+def test_untracked_render_matches_reference_and_tracked_render(count, width, height, opacity_logit_mean, largest_radius_m, dtype):
+    """Without autograd the CPU backend projects in numba (cpu_kernel.project): same maps as the dense reference and
+    as the tracked path (torch projection), and nothing differentiable."""
+    camera = camera_of(width, height)
+    world_from_camera = look_at(np.array([0.1, -0.2, -0.3]), np.array([0.0, 0.0, 2.0]), up=np.array([0.0, -1.0, 0.0]))
+    gaussians = random_gaussians(count, seed=count, dtype=dtype, opacity_logit_mean=opacity_logit_mean, radius_m=(0.01, largest_radius_m))
+    pose_delta = torch.tensor([0.01, -0.02, 0.015, 0.02, -0.01, 0.03], dtype=torch.float64)
+    with torch.no_grad():
+        untracked = render(gaussians, camera, world_from_camera, pose_delta, BACKGROUND, backend="cpu")
+        reference = render(gaussians, camera, world_from_camera, pose_delta, BACKGROUND, backend="reference")
+    tracked = render(requiring_grad(gaussians), camera, world_from_camera, pose_delta, BACKGROUND, backend="cpu")
+    assert tracked.rgb.requires_grad
+    for name in ("rgb", "depth_m", "silhouette"):
+        image = getattr(untracked, name)
+        assert image.dtype == dtype and image.grad_fn is None and not image.requires_grad
+        torch.testing.assert_close(image, getattr(reference, name), atol=1e-5, rtol=0)
+        torch.testing.assert_close(image, getattr(tracked, name).detach(), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_projection_kernel_matches_torch_projection(dtype):
+    """cpu_kernel.project repeats torch's arithmetic: depths and means bit-identical (so the depth order, ties
+    included, is the same), radius and opacity within a few ulp (libm's exp instead of torch's)."""
+    camera = camera_of(70, 45)
+    world_from_camera = look_at(np.array([0.1, -0.2, -0.3]), np.array([0.0, 0.0, 2.0]), up=np.array([0.0, -1.0, 0.0]))
+    gaussians = random_gaussians(5000, seed=21, dtype=dtype)
+    camera_from_world = camera_from_world_tensor(torch.from_numpy(world_from_camera), None)
+    fields = [gaussians.means_m, gaussians.log_radii_m, gaussians.opacity_logits, gaussians.rgb]
+    packed = cpu_kernel.project(*(field.numpy() for field in fields), camera_from_world.numpy(), (camera.fx, camera.fy, camera.cx, camera.cy))
+    screen = project_to_screen(gaussians, camera_frame_means(gaussians, torch.from_numpy(world_from_camera)), camera)
+    assert packed.dtype == gaussians.means_m.numpy().dtype
+    assert (screen.depths_m <= 0.01).any()  # behind the near plane: the stand-in depth, no inf or NaN
+    k = cpu_kernel
+    np.testing.assert_array_equal(packed[:, k.DEPTH], screen.depths_m.numpy())
+    np.testing.assert_array_equal(packed[:, k.U : k.V + 1], screen.means_px.numpy())
+    np.testing.assert_array_equal(packed[:, k.RED : k.RED + 3], screen.rgb.numpy())
+    eps = torch.finfo(dtype).eps
+    np.testing.assert_allclose(packed[:, k.RADIUS], screen.radii_px.numpy(), rtol=4 * eps, atol=0)
+    np.testing.assert_allclose(packed[:, k.OPACITY], screen.opacity.numpy(), rtol=4 * eps, atol=0)
 
 
 @pytest.mark.parametrize("backend", ["cpu", "reference"])

@@ -4,7 +4,9 @@
 them in torch (so autograd carries the pose and projection chain), then composites with one of three backends:
 
 - ``"cpu"``: the numba tile kernels of :mod:`tambridge.gaussians.cpu_kernel` behind a ``torch.autograd.Function``
-  (the path that ships; exact forward and backward of the image model in :mod:`tambridge.gaussians.model`);
+  (the path that ships; exact forward and backward of the image model in :mod:`tambridge.gaussians.model`). When
+  autograd records nothing (``torch.no_grad()`` or no input requiring gradients: evaluation, viewer, meshing) the
+  projection runs in numba too and nothing is kept for a backward pass (:func:`render_cpu_untracked`);
 - ``"gsplat"``: gsplat's CUDA rasteriser (:mod:`tambridge.gaussians.gsplat_backend`);
 - ``"reference"``: the dense torch twin (:mod:`tambridge.gaussians.reference`), for tests.
 
@@ -13,6 +15,7 @@ them in torch (so autograd carries the pose and projection chain), then composit
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Sequence
 
 import numpy as np
@@ -27,6 +30,7 @@ from tambridge.gaussians.model import (
     RenderOutput,
     ScreenGaussians,
     camera_frame_means,
+    camera_from_world_tensor,
     project_to_screen,
 )
 from tambridge.gaussians.reference import composite_reference
@@ -59,6 +63,9 @@ def render(
         raise RuntimeError("render: backend 'gsplat' needs a CUDA device and the gsplat package; use backend='cpu'")
     if isinstance(world_from_camera, np.ndarray):
         world_from_camera = torch.from_numpy(world_from_camera)
+    if backend == "cpu" and not _tracks_gradients(gaussians, pose_delta):
+        camera_from_world = camera_from_world_tensor(world_from_camera, pose_delta)
+        return render_cpu_untracked(gaussians, camera, camera_from_world, background_rgb)
     means_cam_m = camera_frame_means(gaussians, world_from_camera.to(device), pose_delta)
     background = torch.tensor(background_rgb, dtype=means_cam_m.dtype, device=device)
     if backend == "gsplat":
@@ -67,6 +74,35 @@ def render(
     if backend == "reference":
         return composite_reference(screen, camera.width, camera.height, background)
     return composite_cpu(screen, camera.width, camera.height, background)
+
+
+def _tracks_gradients(gaussians: GaussianTensors, pose_delta: torch.Tensor | None) -> bool:
+    """Whether autograd records a render of ``gaussians`` at ``pose_delta``."""
+    tensors = [getattr(gaussians, field.name) for field in dataclasses.fields(gaussians)]
+    tensors += [pose_delta] if pose_delta is not None else []
+    return torch.is_grad_enabled() and any(tensor.requires_grad for tensor in tensors)
+
+
+def render_cpu_untracked(
+    gaussians: GaussianTensors, camera: Camera, camera_from_world: torch.Tensor, background_rgb: Sequence[float]
+) -> RenderOutput:
+    """The CPU kernel's render when nothing needs gradients (evaluation, viewer, meshing): what ``render`` gives,
+    with the projection done in one numba pass (:func:`cpu_kernel.project`) instead of torch and no autograd state.
+
+    camera_from_world: (4, 4) float64. Outputs in the Gaussians' dtype and device, not differentiable.
+    """
+    dtype = gaussians.means_m.dtype
+    # float64 Gaussians are projected in float64, float32 (and others) in float32, as torch projects them.
+    storage = torch.float64 if dtype == torch.float64 else torch.float32
+    fields = (gaussians.means_m, gaussians.log_radii_m, gaussians.opacity_logits, gaussians.rgb)
+    arrays = [field.detach().to("cpu", storage).contiguous().numpy() for field in fields]
+    intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)
+    packed = cpu_kernel.project(*arrays, camera_from_world.detach().cpu().numpy(), intrinsics)
+    bins = cpu_kernel.bin_tiles(packed, camera.width, camera.height)
+    background = np.asarray(background_rgb, np.float64)
+    maps = cpu_kernel.composite_forward(bins, camera.width, camera.height, background, packed.dtype)[:3]
+    device = gaussians.means_m.device
+    return RenderOutput(*(torch.from_numpy(image).to(device=device, dtype=dtype) for image in maps))
 
 
 def composite_cpu(screen: ScreenGaussians, width: int, height: int, background_rgb: torch.Tensor) -> RenderOutput:
