@@ -187,6 +187,8 @@ def main() -> None:
     runs = ROOT / "benchmarks" / "results" / "runs"
     runs.mkdir(parents=True, exist_ok=True)
     rows = []
+    # Frames/s on a shared 2-core machine depend on what else runs: the machine line says so.
+    load_at_start = os.getloadavg()[0]
     for sequence in sequences_with_ground_truth(arguments.data):
         if arguments.sequences and sequence.name not in arguments.sequences:
             continue
@@ -198,7 +200,7 @@ def main() -> None:
             rows.append(run_method(method, sequence, out, max_frames, "cuda" if arguments.gpu else "cpu"))
     table = format_table(rows)
     print(table)
-    machine = describe_machine(gpu)
+    machine = f"{describe_machine(gpu)} (1-minute load average {load_at_start:.1f} at the start, {os.getloadavg()[0]:.1f} at the end)"
     command = ("python benchmarks/run_all.py --data ../shared/data" + (" --quick" if arguments.quick else "")
                + (" --gpu" if arguments.gpu else ""))
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine, "command": command,
