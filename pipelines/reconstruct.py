@@ -76,7 +76,7 @@ def track_sequence(
     on_frame: Callable[[TrackResult, Frame], None] | None = None,
     start_frame: int = 0,
     checkpoints: KeyframeCheckpoints | None = None,
-    prefetch: bool = False,
+    prefetch: bool = True,
 ) -> FrontendResult:
     """Feed every frame from ``start_frame`` on to the frontend in order; returns its final result (after loop
     closure and global BA).

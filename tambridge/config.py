@@ -39,10 +39,10 @@ class FrontendConfig:
 
     kind: str = "orb"
     # Read frame i+1 (and extract its ORB features) in a worker thread while frame i is tracked; same results.
-    # Off: it needs a free core. With this machine's 2 cores busy (load 3-5) it gained nothing on 7-Scenes (700
-    # frames, end to end -9 to +7 % threaded, -4 to 0 % inline) and slowed an inline tracking loop by 5-11 %:
-    # the process got no second core (two GIL-free cv2 threads ran at 1.1 cores) and the threads share the GIL.
-    prefetch: bool = False
+    # It needs a free core: on 7-Scenes (700 frames, 2 cores) with the machine otherwise nearly idle (load 1-1.5)
+    # end to end 23.9 -> 31.5 frames/s with the mapping thread, 20.0 -> 21.7 inline; with the cores busy with
+    # other work (load 3-5) -9 to +7 % with the mapping thread, -4 to 0 % inline (the threads also share the GIL).
+    prefetch: bool = True
     orb: OrbFrontendConfig = dataclasses.field(default_factory=OrbFrontendConfig)
     open3d: Open3dFrontendConfig = dataclasses.field(default_factory=Open3dFrontendConfig)
 
