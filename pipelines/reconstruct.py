@@ -34,6 +34,7 @@ from tambridge.frontend.open3d_frontend import Open3dFrontend
 from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
 from tambridge.frontend.orb_frontend import OrbFrontend
 from tambridge.frontend.types import Frontend, FrontendResult, TrackResult
+from tambridge.io.prefetch import FramePrefetcher
 from tambridge.io.tum import Frame, RgbdSequence, open_sequence
 from tambridge.runlog import RunLog, peak_memory_mb
 from tambridge.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
@@ -75,6 +76,7 @@ def track_sequence(
     on_frame: Callable[[TrackResult, Frame], None] | None = None,
     start_frame: int = 0,
     checkpoints: KeyframeCheckpoints | None = None,
+    prefetch: bool = True,
 ) -> FrontendResult:
     """Feed every frame from ``start_frame`` on to the frontend in order; returns its final result (after loop
     closure and global BA).
@@ -82,19 +84,28 @@ def track_sequence(
     ``on_keyframe(result, frame)`` is called after each frame that made a keyframe (the online mapping); its time
     is not counted as tracking. ``on_frame(result, frame)`` is called after every frame (the live view).
     ``checkpoints`` is told of every keyframe once the frame is mapped (``start_frame > 0``: a resumed run).
+    ``prefetch``: frame i+1 is read, and for the ORB frontend its features extracted, in a worker thread while
+    frame i is tracked (:class:`FramePrefetcher`), with the results of reading and tracking one frame after the
+    other. Stage "frame_reading" is the time spent waiting for the next frame (reading it, or with ``prefetch``
+    what its reading and extraction did not hide behind tracking); "tracking" is the rest of the frontend's time.
     """
-    for index in tqdm(range(start_frame, len(sequence)), total=len(sequence), initial=start_frame, desc="tracking",
-                      unit="frame", disable=not progress):
-        frame = sequence[index]
-        with run_log.stage("tracking"):
-            result = frontend.track(frame)
-        if on_keyframe is not None and result.keyframe is not None:
-            on_keyframe(result, frame)
-        if on_frame is not None:
-            on_frame(result, frame)
-        if checkpoints is not None and result.is_keyframe:
-            with run_log.stage("checkpoint"):
-                checkpoints.after_keyframe(index + 1)
+    # Feature extraction is the one per-frame step of tracking that needs nothing from earlier frames.
+    extract = frontend.extract if prefetch and isinstance(frontend, OrbFrontend) else None
+    with FramePrefetcher(sequence, start_frame, extract, read_ahead=prefetch) as prefetcher:
+        frames = iter(prefetcher)
+        for index in tqdm(range(start_frame, len(sequence)), total=len(sequence), initial=start_frame,
+                          desc="tracking", unit="frame", disable=not progress):
+            with run_log.stage("frame_reading"):
+                frame, features = next(frames)
+            with run_log.stage("tracking"):
+                result = frontend.track(frame) if extract is None else frontend.track(frame, features)
+            if on_keyframe is not None and result.keyframe is not None:
+                on_keyframe(result, frame)
+            if on_frame is not None:
+                on_frame(result, frame)
+            if checkpoints is not None and result.is_keyframe:
+                with run_log.stage("checkpoint"):
+                    checkpoints.after_keyframe(index + 1)
     with run_log.stage("tracking"):
         return frontend.finish()
 
@@ -181,7 +192,8 @@ def reconstruct(
                     live_view.log_frame(frame.index, frame.timestamp_s, result.world_from_camera, frame.rgb,
                                         frame.depth_m, result.is_keyframe)
 
-        tracking = track_sequence(sequence, frontend, run_log, progress, on_keyframe, on_frame, start_frame, checkpoints)
+        tracking = track_sequence(sequence, frontend, run_log, progress, on_keyframe, on_frame, start_frame, checkpoints,
+                                  config.frontend.prefetch)
         # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
         peak_memory_tracking_mb = peak_memory_mb()
         trajectory, keyframes = tracking.trajectory, tracking.keyframe_trajectory

@@ -149,11 +149,21 @@ class OrbFrontend:
         return inverse(reference.world_from_camera @ last.reference_from_camera)
 
     # ------------------------------------------------------------------ per frame
-    def track(self, frame: Frame) -> TrackResult:
-        """Localise one frame (frames must come in order); see :class:`~tambridge.frontend.types.TrackResult`."""
-        self._raise_worker_error()
+    def extract(self, frame: Frame) -> FrameFeatures:
+        """The frame's ORB features, as ``track`` computes them. May run in another thread while ``track`` works
+        on an earlier frame (:class:`~tambridge.io.prefetch.FramePrefetcher`), but in one thread at a time (the
+        extractor holds one cv2 detector)."""
         with self._timed("features"):
-            features = self.extractor.extract(frame.rgb, frame.depth_m)
+            return self.extractor.extract(frame.rgb, frame.depth_m)
+
+    def track(self, frame: Frame, features: FrameFeatures | None = None) -> TrackResult:
+        """Localise one frame (frames must come in order); see :class:`~tambridge.frontend.types.TrackResult`.
+
+        ``features``: the frame's :meth:`extract`, computed ahead (the same result); None extracts them here.
+        """
+        self._raise_worker_error()
+        if features is None:
+            features = self.extract(frame)
         with self._lock:
             result = self._track_features(frame, features)
             if self._loop_closed_unreported:

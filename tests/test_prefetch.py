@@ -1,0 +1,134 @@
+"""Frames read (and ORB features extracted) one frame ahead in a worker thread: same frames, same results."""
+
+import pickle
+import threading
+
+import numpy as np
+import pytest
+
+from pipelines.reconstruct import track_sequence
+from tambridge.frontend.orb_frontend import OrbFrontend
+from tambridge.frontend.types import OrbFrontendConfig
+from tambridge.io.prefetch import FramePrefetcher
+from tambridge.io.tum import Frame, open_sequence
+from tambridge.runlog import RunLog
+
+INLINE = OrbFrontendConfig(mapping_thread=False)
+RESUME_AT = 13
+
+
+class _Frames:
+    """A stand-in sequence of ``count`` tiny frames; reading frame ``broken`` raises; records the reading threads."""
+
+    def __init__(self, count: int, broken: int = -1) -> None:
+        self.count, self.broken = count, broken
+        self.readers: list[str] = []
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, index: int) -> Frame:
+        self.readers.append(threading.current_thread().name)
+        if index == self.broken:
+            raise ValueError(f"frame {index} is corrupt")
+        return Frame(index, 0.1 * index, np.full((2, 2, 3), index, np.uint8), np.full((2, 2), index, np.float32))
+
+
+def _prefetch_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name.startswith("tambridge-prefetch")]
+
+
+@pytest.mark.parametrize("start", [0, 3, 7])
+def test_frames_come_in_order_from_the_start_with_what_prepare_made(start):
+    frames = _Frames(7)
+    with FramePrefetcher(frames, start, prepare=lambda frame: frame.index * 10) as prefetcher:
+        got = list(prefetcher)
+    assert [frame.index for frame, _ in got] == list(range(start, 7))
+    assert [prepared for _, prepared in got] == [10 * i for i in range(start, 7)]
+    assert all(frame.rgb[0, 0, 0] == frame.index for frame, _ in got)
+    # Every frame read once, all of them in the worker thread.
+    assert len(frames.readers) == 7 - start
+    assert all(name.startswith("tambridge-prefetch") for name in frames.readers)
+    assert not _prefetch_threads()
+
+
+def test_without_prepare_frames_are_only_read_ahead():
+    with FramePrefetcher(_Frames(3)) as prefetcher:
+        assert [(frame.index, prepared) for frame, prepared in prefetcher] == [(0, None), (1, None), (2, None)]
+
+
+def test_without_read_ahead_frames_are_read_and_prepared_in_the_callers_thread():
+    frames = _Frames(4)
+    with FramePrefetcher(frames, 1, prepare=lambda frame: threading.current_thread().name, read_ahead=False) as prefetcher:
+        got = [(frame.index, prepared) for frame, prepared in prefetcher]
+    here = threading.current_thread().name
+    assert got == [(1, here), (2, here), (3, here)]
+    assert frames.readers == [here] * 3
+
+
+def test_a_broken_frame_raises_when_reached_and_the_worker_stops():
+    frames = _Frames(6, broken=3)
+    seen = []
+    with pytest.raises(ValueError, match="frame 3 is corrupt"):
+        with FramePrefetcher(frames) as prefetcher:
+            for frame, _ in prefetcher:
+                seen.append(frame.index)
+    assert seen == [0, 1, 2]
+    assert not _prefetch_threads()
+
+
+def test_leaving_early_drops_the_frame_read_ahead():
+    frames = _Frames(10)
+    with FramePrefetcher(frames) as prefetcher:
+        for frame, _ in prefetcher:
+            if frame.index == 2:
+                break
+    # Frames 0-2 were used and frame 3 read ahead (unless cancelled first); nothing further, and no thread is left.
+    assert len(frames.readers) in (3, 4)
+    assert not _prefetch_threads()
+
+
+@pytest.fixture(scope="module")
+def sequential(synthetic_sequence_dir):
+    """The synthetic loop tracked one frame after the other (inline mapping: deterministic)."""
+    sequence = open_sequence(synthetic_sequence_dir)
+    frontend = OrbFrontend(sequence.camera, INLINE)
+    results = [frontend.track(frame) for frame in sequence]
+    return sequence, results, frontend.finish()
+
+
+def _track_prefetched(sequence, frontend, tmp_path, start_frame=0):
+    results = []
+    run_log = RunLog(tmp_path / "run.log")
+    try:
+        final = track_sequence(sequence, frontend, run_log, progress=False, start_frame=start_frame,
+                               on_frame=lambda result, frame: results.append(result), prefetch=True)
+    finally:
+        run_log.close()
+    return results, final, run_log
+
+
+def test_orb_tracking_with_prefetched_features_is_identical_to_sequential(sequential, tmp_path):
+    sequence, expected_results, expected = sequential
+    results, final, run_log = _track_prefetched(sequence, OrbFrontend(sequence.camera, INLINE), tmp_path)
+    assert [r.is_keyframe for r in results] == [r.is_keyframe for r in expected_results]
+    assert sum(r.is_keyframe for r in expected_results) > 2
+    np.testing.assert_array_equal(final.trajectory.world_from_camera, expected.trajectory.world_from_camera)
+    np.testing.assert_array_equal(final.map_points_world_m, expected.map_points_world_m)
+    assert final.frames_lost == expected.frames_lost == 0
+    assert final.timings_s["features"] > 0
+    assert run_log.stage_seconds["tracking"] > 0 and run_log.stage_seconds["frame_reading"] > 0
+
+
+def test_resumed_prefetched_tracking_continues_to_the_sequential_result(sequential, tmp_path):
+    """A resumed run (checkpoint state, then ``start_frame``) prefetches from the frame it resumes at."""
+    sequence, _, expected = sequential
+    first = OrbFrontend(sequence.camera, INLINE)
+    for index in range(RESUME_AT):
+        first.track(sequence[index])
+    second = OrbFrontend(sequence.camera, INLINE)
+    # A checkpoint pickles the state: the resumed frontend shares nothing with the first.
+    second.load_state_dict(pickle.loads(pickle.dumps(first.state_dict())))
+    results, final, _ = _track_prefetched(sequence, second, tmp_path, start_frame=RESUME_AT)
+    assert [r.frame_index for r in results] == list(range(RESUME_AT, len(sequence)))
+    np.testing.assert_array_equal(final.trajectory.world_from_camera, expected.trajectory.world_from_camera)
