@@ -146,8 +146,13 @@ def _parse_size(size: str) -> tuple[int, int]:
 @click.option("--motion-blur", type=int, default=1, help="Sub-frames averaged per frame (1 = none).")
 @click.option("--supersampling", type=click.IntRange(min=1), default=1, show_default=True,
               help="Odd k: k x k rays per pixel averaged (anti-aliased colour, as a camera's pixel integrates); ~k^2 slower.")
+@click.option("--colour-baseline", type=float, default=0.0, show_default=True,
+              help="Metres between a separate colour camera and the depth camera (unregistered, Kinect v1 style; 0: registered).")
+@click.option("--colour-focal-scale", type=float, default=1.0, show_default=True,
+              help="The separate colour camera's focal length over the depth camera's (Kinect v1: about 0.9).")
 @click.option("--seed", type=int, default=0)
-def synth(output_dir, frames, size, depth_noise, colour_noise, motion_blur, supersampling, seed) -> None:
+def synth(output_dir, frames, size, depth_noise, colour_noise, motion_blur, supersampling, colour_baseline,
+          colour_focal_scale, seed) -> None:
     """Write a synthetic TUM-layout sequence (textured room, closed loop) with exact ground truth."""
     from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
 
@@ -155,7 +160,8 @@ def synth(output_dir, frames, size, depth_noise, colour_noise, motion_blur, supe
     if supersampling % 2 == 0:
         raise click.BadParameter(f"{supersampling}: must be odd (the centre ray gives the depth)", param_hint="--supersampling")
     options = SynthOptions(frames, width, height, depth_noise_m=depth_noise, colour_noise=colour_noise,
-                           motion_blur_samples=motion_blur, supersampling=supersampling, seed=seed)
+                           motion_blur_samples=motion_blur, supersampling=supersampling, seed=seed,
+                           colour_baseline_m=colour_baseline, colour_focal_scale=colour_focal_scale)
     write_synthetic_sequence(output_dir, options)
     click.echo(f"wrote {frames} frames to {output_dir}")
 

@@ -51,11 +51,19 @@ class Camera:
 
 @dataclasses.dataclass(frozen=True)
 class RgbdSensor:
-    """A camera plus how its depth PNGs encode metres: ``depth_m = raw / depth_scale``; ``raw == depth_invalid`` -> 0."""
+    """A camera plus how its depth PNGs encode metres: ``depth_m = raw / depth_scale``; ``raw == depth_invalid`` -> 0.
+
+    ``camera`` is the camera of the frames. With colour registered to depth (TUM, most drivers) it is the colour
+    camera. A sensor whose colour is not registered gives ``colour_camera`` and ``colour_from_depth`` ((4, 4),
+    depth-camera points into the colour camera's frame, metres): ``camera`` is then the depth camera, and colour is
+    resampled into it (:mod:`tambridge.io.registration`).
+    """
 
     camera: Camera
     depth_scale: float = 5000.0
     depth_invalid: int | None = None
+    colour_camera: Camera | None = None
+    colour_from_depth: np.ndarray | None = None
 
 
 # TUM RGB-D calibration (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats), 640x480.
@@ -66,6 +74,7 @@ TUM_PRESETS: dict[str, RgbdSensor] = {
 }
 
 _CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+_COLOUR_KEYS = ("colour_fx", "colour_fy", "colour_cx", "colour_cy", "colour_from_depth")
 
 
 def tum_preset_for_folder(folder: Path) -> RgbdSensor | None:
@@ -84,26 +93,68 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
         raise CameraConfigError(f"{source}: missing {', '.join(missing)}; a camera file needs {', '.join(_CAMERA_KEYS)}")
     try:
         distortion = values.get("distortion") or [values.get(f"d{i}", 0.0) for i in range(5)]
-        camera = Camera(
-            width=int(values["width"]),
-            height=int(values["height"]),
-            fx=float(values["fx"]),
-            fy=float(values["fy"]),
-            cx=float(values["cx"]),
-            cy=float(values["cy"]),
-            distortion=tuple(float(c) for c in distortion),
-        )
+        camera = _camera_from_values(values, "")
+        camera = dataclasses.replace(camera, distortion=tuple(float(c) for c in distortion))
+        colour_camera, colour_from_depth = _colour_camera_from_values(values, camera, source)
         invalid = values.get("depth_invalid")
         sensor = RgbdSensor(
             camera=camera,
             depth_scale=float(values.get("depth_scale", 5000.0)),
             depth_invalid=None if invalid is None else int(float(invalid)),
+            colour_camera=colour_camera,
+            colour_from_depth=colour_from_depth,
         )
     except (TypeError, ValueError) as error:
         raise CameraConfigError(f"{source}: {error}; values must be numbers") from error
-    if camera.width <= 0 or camera.height <= 0 or camera.fx <= 0 or camera.fy <= 0 or sensor.depth_scale <= 0:
-        raise CameraConfigError(f"{source}: width, height, fx, fy and depth_scale must be positive")
+    for checked in (camera, colour_camera or camera):
+        if checked.width <= 0 or checked.height <= 0 or checked.fx <= 0 or checked.fy <= 0:
+            raise CameraConfigError(f"{source}: width, height, fx and fy (and their colour_ forms) must be positive")
+    if sensor.depth_scale <= 0:
+        raise CameraConfigError(f"{source}: depth_scale must be positive")
     return sensor
+
+
+def _camera_from_values(values: dict, prefix: str) -> Camera:
+    """The pinhole camera of keys ``{prefix}fx`` ...; a colour camera's size defaults to the depth camera's."""
+    return Camera(
+        width=int(values.get(f"{prefix}width", values["width"])),
+        height=int(values.get(f"{prefix}height", values["height"])),
+        fx=float(values[f"{prefix}fx"]),
+        fy=float(values[f"{prefix}fy"]),
+        cx=float(values[f"{prefix}cx"]),
+        cy=float(values[f"{prefix}cy"]),
+        distortion=tuple(float(c) for c in values.get(f"{prefix}distortion") or (0.0,) * 5),
+    )
+
+
+def _colour_camera_from_values(values: dict, depth_camera: Camera, source: Path) -> tuple[Camera | None, np.ndarray | None]:
+    """``(colour_camera, colour_from_depth)`` of an unregistered sensor's file, or ``(None, None)``."""
+    given = [key for key in _COLOUR_KEYS if key in values]
+    if not given:
+        return None, None
+    missing = [key for key in _COLOUR_KEYS if key not in values]
+    if missing:
+        raise CameraConfigError(
+            f"{source}: has {', '.join(given)} but not {', '.join(missing)}; an unregistered colour camera needs "
+            f"{', '.join(_COLOUR_KEYS)} (width/height and fx.. then describe the depth camera)"
+        )
+    if depth_camera.has_distortion:
+        raise CameraConfigError(
+            f"{source}: distortion describes the depth camera when colour_fx.. are given, and depth undistortion is "
+            "not supported; put the colour camera's coefficients in colour_distortion"
+        )
+    matrix = np.array(values["colour_from_depth"], dtype=float).ravel()
+    if matrix.size == 12:
+        matrix = np.concatenate([matrix, [0.0, 0.0, 0.0, 1.0]])
+    if matrix.size != 16:
+        raise CameraConfigError(
+            f"{source}: colour_from_depth has {matrix.size} numbers; give the 4x4 (or top 3x4) matrix row by row"
+        )
+    colour_from_depth = matrix.reshape(4, 4)
+    rotation = colour_from_depth[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-4) or np.linalg.det(rotation) < 0:
+        raise CameraConfigError(f"{source}: colour_from_depth's top-left 3x3 is not a rotation")
+    return _camera_from_values(values, "colour_"), colour_from_depth
 
 
 def load_sensor_file(path: Path) -> RgbdSensor:

@@ -232,6 +232,27 @@ class SynthOptions:
     # Rays per pixel along each side (odd); see :func:`render`. 1 keeps the tests' sequences fast to write.
     supersampling: int = 1
     seed: int = 0
+    # An unregistered sensor (as a Kinect v1 without depth registration): colour comes from a second camera,
+    # ``colour_baseline_m`` to the right of the depth camera, with its focal length scaled by ``colour_focal_scale``.
+    # The ground truth is the depth camera's; camera.yaml gets the colour_* keys. 0 and 1: one registered camera.
+    colour_baseline_m: float = 0.0
+    colour_focal_scale: float = 1.0
+
+    @property
+    def registered(self) -> bool:
+        return self.colour_baseline_m == 0.0 and self.colour_focal_scale == 1.0
+
+    def colour_camera(self, depth_camera: Camera) -> Camera:
+        """The colour camera's intrinsics: the depth camera's, focal length scaled."""
+        return dataclasses.replace(
+            depth_camera, fx=depth_camera.fx * self.colour_focal_scale, fy=depth_camera.fy * self.colour_focal_scale
+        )
+
+    def colour_from_depth(self) -> np.ndarray:
+        """(4, 4): depth-camera points into the colour camera's frame (the colour camera sits at +baseline x)."""
+        transform = np.eye(4)
+        transform[0, 3] = -self.colour_baseline_m
+        return transform
 
 
 def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions()) -> Trajectory:
@@ -248,11 +269,16 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
     world_from_camera = loop_path(options.frame_count)
     timestamps = np.arange(options.frame_count) / options.fps
     rgb_lines, depth_lines = ["# timestamp filename"], ["# timestamp filename"]
+    colour_camera = options.colour_camera(camera)
+    depth_from_colour = np.linalg.inv(options.colour_from_depth())
     for index, pose in enumerate(world_from_camera):
         colour, depth_m = render(scene, camera, pose, options.supersampling)
+        if not options.registered:
+            colour = render(scene, colour_camera, pose @ depth_from_colour, options.supersampling)[0]
         if options.motion_blur_samples > 1:
             previous = world_from_camera[index - 1]
-            blurred = [render(scene, camera, interpolate_pose(previous, pose, f), options.supersampling)[0]
+            blurred = [render(scene, colour_camera, interpolate_pose(previous, pose, f) @ depth_from_colour,
+                              options.supersampling)[0]
                        for f in np.linspace(0.5, 1.0, options.motion_blur_samples)[:-1]]
             colour = (colour + sum(blurred)) / options.motion_blur_samples
         if options.colour_noise > 0:
@@ -274,6 +300,9 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
     atomic_write_text(folder / "groundtruth.txt", format_tum_trajectory(trajectory))
     camera_values = {field: getattr(camera, field) for field in ("width", "height", "fx", "fy", "cx", "cy")}
     camera_values.update(depth_scale=SYNTHETIC_DEPTH_SCALE, distortion=[0.0] * 5)
+    if not options.registered:
+        camera_values.update({f"colour_{field}": getattr(colour_camera, field) for field in ("fx", "fy", "cx", "cy")})
+        camera_values["colour_from_depth"] = options.colour_from_depth().tolist()
     atomic_write_text(folder / "camera.yaml", yaml.safe_dump(camera_values, sort_keys=False))
     return trajectory
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from tambridge.camera import Camera, RgbdSensor, find_sensor
 from tambridge.errors import SequenceFormatError
+from tambridge.io.registration import ColourToDepth
 from tambridge.trajectory import Trajectory, read_tum_trajectory
 
 MAX_ASSOCIATION_DIFFERENCE_S = 0.02
@@ -115,7 +116,8 @@ def inscribed_rectangle(valid: np.ndarray) -> tuple[int, int, int, int]:
 class RgbdSequence:
     """A TUM-layout RGB-D sequence: associated frames loaded on access, undistorted where the camera says.
 
-    ``camera`` is the camera of the frames this class returns (distortion removed).
+    ``camera`` is the camera of the frames this class returns (distortion removed). A sensor with an unregistered
+    colour camera gives frames in its depth camera, colour resampled into it.
     """
 
     def __init__(
@@ -135,9 +137,13 @@ class RgbdSequence:
         self.ground_truth = ground_truth
         self.camera: Camera = sensor.camera.undistorted()
         self._undistort_maps = None
+        self._colour_to_depth = None
         # Rows top:bottom, columns left:right of the frames in which every pixel has data.
         self.valid_region: tuple[int, int, int, int] = (0, self.camera.height, 0, self.camera.width)
-        if sensor.camera.has_distortion:
+        if sensor.colour_camera is not None:
+            self._colour_to_depth = ColourToDepth(sensor.camera, sensor.colour_camera, sensor.colour_from_depth)
+            self.valid_region = inscribed_rectangle(self._colour_to_depth.inside_colour_image())
+        elif sensor.camera.has_distortion:
             source = sensor.camera
             self._undistort_maps = cv2.initUndistortRectifyMap(
                 source.K, np.array(source.distortion), None, source.K, (source.width, source.height), cv2.CV_32FC1
@@ -154,7 +160,14 @@ class RgbdSequence:
             raise IndexError(index)
         rgb = self.read_rgb(self.rgb_paths[index])
         depth_m = self.read_depth_m(self.depth_paths[index])
-        if depth_m.shape != rgb.shape[:2]:
+        if self._colour_to_depth is not None:
+            if depth_m.shape != (self.camera.height, self.camera.width):
+                raise SequenceFormatError(
+                    f"{self.depth_paths[index]}: depth is {depth_m.shape[1]}x{depth_m.shape[0]} but the depth camera is "
+                    f"{self.camera.width}x{self.camera.height}; fix width/height in camera.yaml (--camera)"
+                )
+            rgb = self._colour_to_depth.colour_in_depth_camera(rgb, depth_m)
+        elif depth_m.shape != rgb.shape[:2]:
             raise SequenceFormatError(
                 f"{self.depth_paths[index]}: depth is {depth_m.shape[1]}x{depth_m.shape[0]} but its colour image "
                 f"{self.rgb_paths[index].name} is {rgb.shape[1]}x{rgb.shape[0]}; colour and depth must be registered"
@@ -175,11 +188,12 @@ class RgbdSequence:
         image = _imread(path, cv2.IMREAD_COLOR, "rgb.txt")
         if image.dtype != np.uint8:
             raise SequenceFormatError(f"{path}: colour image must be 8-bit, got {image.dtype}")
-        camera = self.sensor.camera
+        camera = self.sensor.colour_camera or self.sensor.camera
         if image.shape[:2] != (camera.height, camera.width):
+            keys = "colour_width/colour_height" if self.sensor.colour_camera else "width/height"
             raise SequenceFormatError(
                 f"{path}: image is {image.shape[1]}x{image.shape[0]} but the camera is {camera.width}x{camera.height}; "
-                "fix width/height in camera.yaml (--camera)"
+                f"fix {keys} in camera.yaml (--camera)"
             )
         return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 

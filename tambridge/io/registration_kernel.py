@@ -1,0 +1,58 @@
+"""Numba kernel of :meth:`tambridge.io.registration.ColourToDepth.colour_in_depth_camera` (imported on first use)."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def resample_colour(
+    colour: np.ndarray,
+    lookup_depth_m: np.ndarray,
+    rotated_rays: np.ndarray,
+    translation_m: np.ndarray,
+    intrinsics: np.ndarray,
+    distortion: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """Fill ``out`` (H, W, 3) uint8 with ``colour`` (Hc, Wc, 3) uint8 sampled where each depth pixel's point lands.
+
+    ``lookup_depth_m`` (H, W) > 0; ``rotated_rays`` (H, W, 3): depth-camera rays in the colour frame; the point is
+    ``ray * z + translation_m``; ``intrinsics`` = (fx, fy, cx, cy) and ``distortion`` = (k1, k2, p1, p2, k3) of the
+    colour camera. Same arithmetic as ``colour_maps`` + ``bilinear_or_black`` (float32, round half up).
+    """
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    k1, k2, p1, p2, k3 = distortion[0], distortion[1], distortion[2], distortion[3], distortion[4]
+    distorted = k1 != 0 or k2 != 0 or p1 != 0 or p2 != 0 or k3 != 0
+    colour_height, colour_width = colour.shape[0], colour.shape[1]
+    for row in range(out.shape[0]):
+        for column in range(out.shape[1]):
+            z = lookup_depth_m[row, column]
+            px = rotated_rays[row, column, 0] * z + translation_m[0]
+            py = rotated_rays[row, column, 1] * z + translation_m[1]
+            pz = rotated_rays[row, column, 2] * z + translation_m[2]
+            x = px / pz
+            y = py / pz
+            if distorted:
+                r2 = x * x + y * y
+                radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                x, y = (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                        y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+            u = np.float32(fx * x + cx)
+            v = np.float32(fy * y + cy)
+            if not (u >= 0 and u <= colour_width - 1 and v >= 0 and v <= colour_height - 1):
+                out[row, column, 0] = 0
+                out[row, column, 1] = 0
+                out[row, column, 2] = 0
+                continue
+            x0 = int(u)  # u, v >= 0 here: truncation is floor
+            y0 = int(v)
+            x1 = min(x0 + 1, colour_width - 1)
+            y1 = min(y0 + 1, colour_height - 1)
+            ax = np.float32(u - x0)
+            ay = np.float32(v - y0)
+            for channel in range(3):
+                top = np.float32(colour[y0, x0, channel]) * (1 - ax) + np.float32(colour[y0, x1, channel]) * ax
+                bottom = np.float32(colour[y1, x0, channel]) * (1 - ax) + np.float32(colour[y1, x1, channel]) * ax
+                out[row, column, channel] = np.uint8(int(top * (1 - ay) + bottom * ay + np.float32(0.5)))
