@@ -4,11 +4,11 @@ renders that need no gradients) the projection to screen space.
 Layout. The image is cut into ``TILE_PX`` x ``TILE_PX`` tiles. Each visible Gaussian is listed in every tile its
 3-sigma box overlaps, each tile's list in front-to-back order: a stable counting sort by tile in index order
 (parallel over chunks of Gaussians, reading the input in sequence), then a stable radix sort of each tile's list by
-depth (parallel over tiles, in cache). A list entry carries a copy of its
-Gaussian's packed row, so the passes below read memory in order instead of jumping around the (N, 8) input; that
-alone halves their time at 200k Gaussians. Rows are stored in the dtype of the input (float32 for the mapper's
-float32 Gaussians, which halves the memory traffic at no loss: every kernel computes in float64). Tiles are
-independent, so both passes run one tile per thread (``prange``).
+depth (parallel over tiles, in cache). A list entry carries a copy of its Gaussian's packed row, so the passes
+below read memory in order instead of jumping around the (N, 8) input; that alone halves their time at 200k
+Gaussians. Rows are stored in the dtype of the input (float32 for the mapper's float32 Gaussians, which halves the
+memory traffic at no loss: every kernel computes in float64). Tiles are independent, so the tile passes run one
+group of tiles per thread, the groups balanced by entry count (:func:`balanced_groups`).
 
 Within a tile the Gaussians are *splatted*: each entry visits only the pixels of its 3-sigma disc, in list order,
 updating that pixel's running transmittance and sums. For the one-pixel Gaussians the mapper creates this costs
