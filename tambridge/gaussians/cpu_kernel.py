@@ -2,12 +2,13 @@
 renders that need no gradients) the projection to screen space.
 
 Layout. The image is cut into ``TILE_PX`` x ``TILE_PX`` tiles. Each visible Gaussian is listed in every tile its
-3-sigma box overlaps, each tile's list in front-to-back order (one global sort of unique int64 depth keys, then a
-stable counting sort by tile, parallel over chunks of the depth order). A list entry carries a copy of its
-Gaussian's packed row, so the passes below read memory in order instead of jumping around the (N, 8) input; that
-alone halves their time at 200k Gaussians. Rows are stored in the dtype of the input (float32 for the mapper's
-float32 Gaussians, which halves the memory traffic at no loss: every kernel computes in float64). Tiles are
-independent, so both passes run one tile per thread (``prange``).
+3-sigma box overlaps, each tile's list in front-to-back order: a stable counting sort by tile in index order
+(parallel over chunks of Gaussians, reading the input in sequence), then a stable radix sort of each tile's list by
+depth (parallel over tiles, in cache). A list entry carries a copy of its Gaussian's packed row, so the passes
+below read memory in order instead of jumping around the (N, 8) input; that alone halves their time at 200k
+Gaussians. Rows are stored in the dtype of the input (float32 for the mapper's float32 Gaussians, which halves the
+memory traffic at no loss: every kernel computes in float64). Tiles are independent, so the tile passes run one
+group of tiles per thread, the groups balanced by entry count (:func:`balanced_groups`).
 
 Within a tile the Gaussians are *splatted*: each entry visits only the pixels of its 3-sigma disc, in list order,
 updating that pixel's running transmittance and sums. For the one-pixel Gaussians the mapper creates this costs
@@ -55,19 +56,22 @@ class TileBins:
     """Per-tile front-to-back lists of the visible Gaussians among N.
 
     Tile t owns entries ``tile_starts[t]:tile_starts[t + 1]`` of ``entry_rows`` (E, PACKED_COLUMNS), each a copy of
-    its Gaussian's packed row (dtype of the packed input). ``order`` (M,) lists the visible Gaussians front to back;
-    the k-th of them is listed as the entries ``slot_entries[slot_starts[k]:slot_starts[k + 1]]`` ((E,) and
-    (M + 1,)), one per tile it overlaps: the backward pass writes per-entry gradients in entry order, and each
-    Gaussian gathers its own.
+    its Gaussian's packed row (dtype of the packed input). For the backward pass, Gaussian i is listed as the entries
+    ``slot_entries[slot_starts[i]:slot_starts[i + 1]]`` ((E,) and (N + 1,); none for a culled one), one per tile it
+    overlaps: the backward pass writes per-entry gradients in entry order, and each Gaussian gathers its own;
+    ``entry_sums`` (E,) int64 names the Gaussian whose gradient each entry sums (its first entry does), -1 for the
+    others. All three are None when the bins were made without slots (forward-only renders). The tile passes run one group of tiles
+    per thread: group g is tiles ``tile_groups[group_starts[g]:group_starts[g + 1]]`` (see :func:`balanced_groups`).
     """
 
     entry_rows: np.ndarray
-    slot_entries: np.ndarray
     tile_starts: np.ndarray
     tiles_x: int
-    order: np.ndarray
-    slot_starts: np.ndarray
-    gaussian_count: int
+    tile_groups: np.ndarray
+    group_starts: np.ndarray
+    slot_entries: np.ndarray | None
+    slot_starts: np.ndarray | None
+    entry_sums: np.ndarray | None
 
 
 @dataclasses.dataclass
@@ -91,7 +95,7 @@ def _pixel_box(u, v, radius, x_lo, x_hi, y_lo, y_hi):
 
 
 @numba.njit(cache=True, inline="always")
-def _tile_box(row, width, height, tile_px):
+def _tile_box(row, width, height):
     """Inclusive tile box (tx0, tx1, ty0, ty1) of a packed row; empty (tx1 < tx0) when the Gaussian is behind the
     near plane, has no radius or touches no pixel centre of the image. NaN fields fail every test, so cull too."""
     u, v, radius, depth = np.float64(row[U]), np.float64(row[V]), np.float64(row[RADIUS]), np.float64(row[DEPTH])
@@ -103,7 +107,8 @@ def _tile_box(row, width, height, tile_px):
     x0, x1, y0, y1 = _pixel_box(u, v, radius, 0, width - 1, 0, height - 1)
     if x0 > x1 or y0 > y1:  # between pixel centres
         return 0, -1, 0, -1
-    return x0 // tile_px, x1 // tile_px, y0 // tile_px, y1 // tile_px
+    # TILE_PX is a compile-time constant: the divisions become shifts (runtime ones cost ~10 % of the binning).
+    return x0 // TILE_PX, x1 // TILE_PX, y0 // TILE_PX, y1 // TILE_PX
 
 
 @numba.njit(parallel=True, cache=True)
@@ -151,103 +156,177 @@ def project(
     return packed
 
 
-_CULLED = np.iinfo(np.int64).max
-"""Depth key of a culled Gaussian: sorts after every visible one."""
-
-
 @numba.njit(parallel=True, cache=True)
-def _depth_keys(packed, depth_bits, width, height, tile_px, keys):
-    """Depth key ``depth_bits << 32 | index`` of every Gaussian (N,), ``_CULLED`` if it is culled; the keys are
-    unique, so sorting them gives the front-to-back order with ties in index order."""
-    for i in numba.prange(packed.shape[0]):
-        tx0, tx1, _, _ = _tile_box(packed[i], width, height, tile_px)
-        keys[i] = (np.int64(depth_bits[i]) << 32) | i if tx0 <= tx1 else _CULLED
-
-
-@numba.njit(parallel=True, cache=True)
-def _fill_tiles(packed, sorted_keys, visible_count, width, height, tile_px, tiles_x, tiles_y, chunk_count):
-    """Stable parallel counting sort by tile of the visible Gaussians, taken in depth order (``sorted_keys``).
-
-    The depth order is cut into chunks; each chunk counts its entries per tile, prefix sums give each chunk its own
-    write cursor in every tile after those of the chunks in front of it, so every tile list stays front to back.
-    Returns entry_rows, slot_entries, tile_starts, order (M,) (the visible Gaussians front to back) and
-    slot_starts (M + 1,) (the k-th of them is listed as entries ``slot_entries[slot_starts[k]:slot_starts[k + 1]]``).
-    """
-    tile_count = tiles_x * tiles_y
-    chunk_size = -(-visible_count // chunk_count)
-    order = np.empty(visible_count, np.int64)
-    sorted_rows = np.empty((visible_count, PACKED_COLUMNS), packed.dtype)
-    sorted_boxes = np.empty((visible_count, 4), np.int32)  # recomputed: cheaper than a second random read
-    chunk_tile_counts = np.zeros((chunk_count, tile_count), np.int64)
-    slot_starts = np.empty(visible_count + 1, np.int64)
-    for chunk in numba.prange(chunk_count):
-        first, last = chunk * chunk_size, min(visible_count, (chunk + 1) * chunk_size)
-        # The one loop that reads the input in random order; alone in its loop, so the loads overlap.
-        for k in range(first, last):
-            i = sorted_keys[k] & 0xFFFFFFFF
-            order[k] = i
-            for column in range(PACKED_COLUMNS):
-                sorted_rows[k, column] = packed[i, column]
+def _count_tiles(packed, width, height, tiles_x, chunk_size, boxes, chunk_tile_counts):
+    """Tile box (tx0, tx1, ty0, ty1) of every Gaussian into ``boxes`` (N, 4) (empty when culled, see
+    :func:`_tile_box`) and, for each chunk of ``chunk_size`` consecutive Gaussians, its entries per tile into
+    ``chunk_tile_counts`` (chunks, tiles), zeroed by the caller."""
+    for chunk in numba.prange(chunk_tile_counts.shape[0]):
         counts = chunk_tile_counts[chunk]
-        for k in range(first, last):
-            # Box bounds in locals: numba assumes any array store may alias, so loop bounds read back from
-            # sorted_boxes would be reloaded after every count update.
-            tx0, tx1, ty0, ty1 = _tile_box(sorted_rows[k], width, height, tile_px)
-            sorted_boxes[k, 0], sorted_boxes[k, 1], sorted_boxes[k, 2], sorted_boxes[k, 3] = tx0, tx1, ty0, ty1
-            slot_starts[k + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
+        for i in range(chunk * chunk_size, min(packed.shape[0], (chunk + 1) * chunk_size)):
+            tx0, tx1, ty0, ty1 = _tile_box(packed[i], width, height)
+            boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = tx0, tx1, ty0, ty1
             for ty in range(ty0, ty1 + 1):
                 for tx in range(tx0, tx1 + 1):
                     counts[ty * tiles_x + tx] += 1
-    slot_starts[0] = 0
-    for k in range(visible_count):
-        slot_starts[k + 1] += slot_starts[k]
-    tile_starts = np.empty(tile_count + 1, np.int64)
-    chunk_cursors = np.empty((chunk_count, tile_count), np.int64)
-    total = 0
-    for tile in range(tile_count):
-        tile_starts[tile] = total
-        for chunk in range(chunk_count):
-            chunk_cursors[chunk, tile] = total
-            total += chunk_tile_counts[chunk, tile]
-    tile_starts[tile_count] = total
-    entry_rows = np.empty((total, PACKED_COLUMNS), packed.dtype)
-    slot_entries = np.empty(total, np.int64)
-    for chunk in numba.prange(chunk_count):
+
+
+@numba.njit(parallel=True, cache=True)
+def _scatter_to_tiles(depth_bits, boxes, tiles_x, chunk_size, chunk_cursors, chunk_first_slots, with_slots, tile_keys, slot_starts):
+    """Stable counting sort by tile, in index order: Gaussian i's depth key ``depth_bits[i] << 32 | i`` goes to the
+    next free place of each tile it overlaps (``boxes`` (N, 4)). Each chunk of ``chunk_size`` Gaussians writes from
+    its own cursors (``chunk_cursors`` (chunks, tiles), after those of the chunks before it), so each tile's keys
+    come in index order. Only the 8-byte keys move here: scattering whole rows to every tile is ~5x slower.
+
+    With ``with_slots``, Gaussian i's entries get slots ``slot_starts[i]:slot_starts[i + 1]``, its chunk's from
+    ``chunk_first_slots[chunk]`` on."""
+    for chunk in numba.prange(chunk_cursors.shape[0]):
         cursors = chunk_cursors[chunk]
-        row = np.empty(PACKED_COLUMNS, entry_rows.dtype)  # in locals for the same reason
-        for k in range(chunk * chunk_size, min(visible_count, (chunk + 1) * chunk_size)):
-            slot = slot_starts[k]
-            tx0, tx1, ty0, ty1 = sorted_boxes[k, 0], sorted_boxes[k, 1], sorted_boxes[k, 2], sorted_boxes[k, 3]
-            for column in range(PACKED_COLUMNS):
-                row[column] = sorted_rows[k, column]
+        first, last = chunk * chunk_size, min(depth_bits.size, (chunk + 1) * chunk_size)
+        slot = chunk_first_slots[chunk]
+        for i in range(first, last):
+            tx0, tx1, ty0, ty1 = boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3]
+            if with_slots:
+                slot_starts[i] = slot
+                slot += max(tx1 - tx0 + 1, 0) * max(ty1 - ty0 + 1, 0)
+            key = (np.int64(depth_bits[i]) << 32) | i
             for ty in range(ty0, ty1 + 1):
                 for tx in range(tx0, tx1 + 1):
-                    entry = cursors[ty * tiles_x + tx]
-                    cursors[ty * tiles_x + tx] = entry + 1
-                    for column in range(PACKED_COLUMNS):
-                        entry_rows[entry, column] = row[column]
-                    slot_entries[slot] = entry
-                    slot += 1
-    return entry_rows, slot_entries, tile_starts, order, slot_starts
+                    place = cursors[ty * tiles_x + tx]
+                    cursors[ty * tiles_x + tx] = place + 1
+                    tile_keys[place] = key
 
 
-def bin_tiles(packed: np.ndarray, width: int, height: int) -> TileBins:
+RADIX_BITS = 11
+"""Digit width of :func:`sort_depth_keys`: three passes cover the 31 bits of a positive float32, and the 2048-bin
+histograms stay in L1."""
+
+
+@numba.njit(cache=True)
+def sort_depth_keys(keys):
+    """Sort depth keys ``depth_bits << 32 | index`` (n,) int64, which come in ascending index order, in place.
+
+    With the keys in index order, a stable sort by the depth bits alone sorts them whole: an LSD radix sort, one
+    pass per ``RADIX_BITS`` digit of the upper word (skipped when every key has the same digit there). The fast
+    twin of ``np.sort`` for such keys.
+    """
+    n = keys.size
+    mask = (1 << RADIX_BITS) - 1
+    passes = -(-31 // RADIX_BITS)
+    histograms = np.zeros((passes, mask + 1), np.int64)
+    for k in range(n):
+        for digit in range(passes):
+            histograms[digit, (keys[k] >> (32 + digit * RADIX_BITS)) & mask] += 1
+    source, target = keys, np.empty_like(keys)
+    in_place = True
+    for digit in range(passes):
+        shift = 32 + digit * RADIX_BITS
+        histogram = histograms[digit]
+        if n == 0 or histogram[(keys[0] >> shift) & mask] == n:
+            continue
+        total = 0
+        for bucket in range(mask + 1):
+            total, histogram[bucket] = total + histogram[bucket], total
+        for k in range(n):
+            key = source[k]
+            bucket = (key >> shift) & mask
+            target[histogram[bucket]] = key
+            histogram[bucket] += 1
+        source, target = target, source
+        in_place = not in_place
+    if not in_place:
+        keys[:] = source
+
+
+@numba.njit(parallel=True, cache=True)
+def _sort_tiles(packed, boxes, tile_keys, tile_starts, tiles_x, tile_groups, group_starts, with_slots, slot_starts, entry_rows, slot_entries, entry_sums):
+    """Each tile's keys front to back (:func:`sort_depth_keys`), then its Gaussians' rows copied in that order into
+    ``entry_rows``; with ``with_slots``, each entry's place goes to its Gaussian's slot for this tile in
+    ``slot_entries`` (slots follow the tile box row by row), and ``entry_sums`` gets the Gaussian at its first slot's
+    entry, -1 elsewhere."""
+    for group in numba.prange(group_starts.size - 1):
+        for tile in tile_groups[group_starts[group] : group_starts[group + 1]]:
+            start, end = tile_starts[tile], tile_starts[tile + 1]
+            keys = tile_keys[start:end]
+            sort_depth_keys(keys)
+            tx, ty = tile % tiles_x, tile // tiles_x
+            for entry in range(start, end):
+                # Random reads of the input, but one per entry and independent: the loads overlap (~10 ns a row).
+                i = keys[entry - start] & 0xFFFFFFFF
+                for column in range(PACKED_COLUMNS):
+                    entry_rows[entry, column] = packed[i, column]
+                if with_slots:
+                    tx0, tx1, ty0 = boxes[i, 0], boxes[i, 1], boxes[i, 2]
+                    slot = (ty - ty0) * (tx1 - tx0 + 1) + tx - tx0
+                    slot_entries[slot_starts[i] + slot] = entry
+                    entry_sums[entry] = i if slot == 0 else -1
+
+
+@numba.njit(cache=True)
+def balanced_groups(costs, group_count):
+    """Items (n,) grouped for ``group_count`` threads so that their summed ``costs`` (n,) are even: the longest
+    first, each to the group with the least so far (LPT; no group exceeds another by more than the largest cost).
+    Returns ``items`` (n,) and ``group_starts`` (group_count + 1,): group g is ``items[group_starts[g]:group_starts[g + 1]]``.
+
+    numba's ``prange`` splits its range into equal contiguous blocks, one per thread, whatever each item costs; the
+    image's tiles differ by up to 4x in entries (fewer at the image edges and in empty regions), so the thread with the
+    busier half of the image would set the pace.
+    """
+    loads = np.zeros(group_count)
+    group_of = np.empty(costs.size, np.int64)
+    for item in np.argsort(-costs, kind="mergesort"):
+        group = np.argmin(loads)
+        group_of[item] = group
+        loads[group] += costs[item]
+    group_starts = np.zeros(group_count + 1, np.int64)
+    for item in range(costs.size):
+        group_starts[group_of[item] + 1] += 1
+    group_starts = np.cumsum(group_starts)
+    items = np.empty(costs.size, np.int64)
+    cursors = group_starts[:-1].copy()
+    for item in range(costs.size):
+        items[cursors[group_of[item]]] = item
+        cursors[group_of[item]] += 1
+    return items, group_starts
+
+
+def bin_tiles(packed: np.ndarray, width: int, height: int, with_slots: bool = True) -> TileBins:
     """Bin packed Gaussians (N, PACKED_COLUMNS), float32 or float64, into tiles, front to back by their float32
-    depth (ties in index order); Gaussians behind the near plane or off the image are left out."""
+    depth (ties in index order); Gaussians behind the near plane or off the image are left out. ``with_slots``:
+    also list each Gaussian's entries, which the backward pass needs (``slot_entries``, ``slot_starts``)."""
     count = packed.shape[0]
     if count >= 2**32:
         raise ValueError(f"bin_tiles: {count} Gaussians, the depth keys hold at most 2**32 - 1")
+    tiles_x, tiles_y = -(-width // TILE_PX), -(-height // TILE_PX)
+    chunk_count = 4 * numba.get_num_threads()
+    chunk_size = max(1, -(-count // chunk_count))
+    boxes = np.empty((count, 4), np.int32)
+    chunk_tile_counts = np.zeros((chunk_count, tiles_x * tiles_y), np.int64)
+    _count_tiles(packed, width, height, tiles_x, chunk_size, boxes, chunk_tile_counts)
+    tile_starts = np.zeros(tiles_x * tiles_y + 1, np.int64)
+    np.cumsum(chunk_tile_counts.sum(axis=0), out=tile_starts[1:])
+    chunk_cursors = tile_starts[:-1] + np.cumsum(chunk_tile_counts, axis=0) - chunk_tile_counts
     # Positive float32 bit patterns sort like the numbers (the only depths kept are > NEAR_PLANE_M > 0).
     depth_bits = np.ascontiguousarray(packed[:, DEPTH]).astype(np.float32).view(np.int32)
-    tiles_x, tiles_y = -(-width // TILE_PX), -(-height // TILE_PX)
-    keys = np.empty(count, np.int64)
-    _depth_keys(packed, depth_bits, width, height, TILE_PX, keys)
-    keys.sort()  # numpy's vectorised sort: ~2x numba's, and unique keys make stability moot
-    visible_count = int(np.searchsorted(keys, _CULLED))
-    entry_rows, slot_entries, tile_starts, order, slot_starts = _fill_tiles(
-        packed, keys, visible_count, width, height, TILE_PX, tiles_x, tiles_y, 4 * numba.get_num_threads()
+    entry_count = int(tile_starts[-1])
+    tile_keys = np.empty(entry_count, np.int64)
+    chunk_entries = chunk_tile_counts.sum(axis=1)
+    chunk_first_slots = np.cumsum(chunk_entries) - chunk_entries
+    slot_starts = np.empty(count + 1 if with_slots else 0, np.int64)
+    _scatter_to_tiles(
+        depth_bits, boxes, tiles_x, chunk_size, chunk_cursors, chunk_first_slots, with_slots, tile_keys, slot_starts
     )
-    return TileBins(entry_rows, slot_entries, tile_starts, tiles_x, order, slot_starts, count)
+    tile_groups, group_starts = balanced_groups(np.diff(tile_starts).astype(np.float64), numba.get_num_threads())
+    entry_rows = np.empty((entry_count, PACKED_COLUMNS), packed.dtype)
+    slot_entries, entry_sums = (np.empty(entry_count if with_slots else 0, np.int64) for _ in range(2))
+    _sort_tiles(
+        packed, boxes, tile_keys, tile_starts, tiles_x, tile_groups, group_starts, with_slots, slot_starts,
+        entry_rows, slot_entries, entry_sums,
+    )
+    if not with_slots:
+        return TileBins(entry_rows, tile_starts, tiles_x, tile_groups, group_starts, None, None, None)
+    slot_starts[count] = entry_count
+    return TileBins(entry_rows, tile_starts, tiles_x, tile_groups, group_starts, slot_entries, slot_starts, entry_sums)
 
 
 # Rows of the per-axis footprint buffers (3, tile side) filled by _footprint.
@@ -318,64 +397,65 @@ _PIXEL_T, _PIXEL_RED, _PIXEL_DEPTH, _PIXEL_SILHOUETTE = 0, 1, 4, 5
 
 
 @numba.njit(parallel=True, cache=True)
-def _forward(entry_rows, tile_starts, tiles_x, tile_px, background, out_rgb, out_depth, out_silhouette, out_transmittance, out_contributors):
+def _forward(entry_rows, tile_starts, tile_groups, group_starts, tiles_x, tile_px, background, out_rgb, out_depth, out_silhouette, out_transmittance, out_contributors):
     height, width = out_depth.shape
-    for tile in numba.prange(tile_starts.size - 1):
-        y_lo = (tile // tiles_x) * tile_px
-        x_lo = (tile % tiles_x) * tile_px
-        y_hi = min(y_lo + tile_px, height) - 1
-        x_hi = min(x_lo + tile_px, width) - 1
-        tile_h, tile_w = y_hi - y_lo + 1, x_hi - x_lo + 1
-        # One array for what a pixel update reads and writes (one address per update instead of five, -10% time):
-        # transmittance, then the sums of colour, depth and silhouette.
-        pixels = np.zeros((tile_h, tile_w, 6))
-        pixels[:, :, _PIXEL_T] = 1.0
-        contributors = np.zeros((tile_h, tile_w), np.int32)
-        done = np.zeros((tile_h, tile_w), np.bool_)
-        x_axis, y_axis = np.empty((3, tile_w)), np.empty((3, tile_h))
-        pixels_left = tile_h * tile_w
-        start = tile_starts[tile]
-        for entry in range(start, tile_starts[tile + 1]):
-            if pixels_left == 0:
-                break
-            row = entry_rows[entry]
-            x0, x1, y0, y1 = _entry_box(row, x_lo, x_hi, y_lo, y_hi)
-            _footprint(row, x0, x1, y0, y1, x_axis, y_axis)
-            opacity, z = np.float64(row[OPACITY]), np.float64(row[DEPTH])
-            red, green, blue = np.float64(row[RED]), np.float64(row[RED + 1]), np.float64(row[RED + 2])
-            for ky in range(y1 - y0 + 1):
-                ly = y0 - y_lo + ky
-                kx_lo, kx_hi = _row_span(x_axis, x1 - x0 + 1, y_axis[DISTANCE_SQ, ky])
-                for kx in range(kx_lo, kx_hi + 1):
-                    lx = x0 - x_lo + kx
-                    if done[ly, lx]:
-                        continue
-                    raw_alpha = opacity * x_axis[FALLOFF, kx] * y_axis[FALLOFF, ky]
-                    alpha = min(raw_alpha, ALPHA_MAX)
+    for group in numba.prange(group_starts.size - 1):
+        for tile in tile_groups[group_starts[group] : group_starts[group + 1]]:
+            y_lo = (tile // tiles_x) * tile_px
+            x_lo = (tile % tiles_x) * tile_px
+            y_hi = min(y_lo + tile_px, height) - 1
+            x_hi = min(x_lo + tile_px, width) - 1
+            tile_h, tile_w = y_hi - y_lo + 1, x_hi - x_lo + 1
+            # One array for what a pixel update reads and writes (one address per update instead of five, -10% time):
+            # transmittance, then the sums of colour, depth and silhouette.
+            pixels = np.zeros((tile_h, tile_w, 6))
+            pixels[:, :, _PIXEL_T] = 1.0
+            contributors = np.zeros((tile_h, tile_w), np.int32)
+            done = np.zeros((tile_h, tile_w), np.bool_)
+            x_axis, y_axis = np.empty((3, tile_w)), np.empty((3, tile_h))
+            pixels_left = tile_h * tile_w
+            start = tile_starts[tile]
+            for entry in range(start, tile_starts[tile + 1]):
+                if pixels_left == 0:
+                    break
+                row = entry_rows[entry]
+                x0, x1, y0, y1 = _entry_box(row, x_lo, x_hi, y_lo, y_hi)
+                _footprint(row, x0, x1, y0, y1, x_axis, y_axis)
+                opacity, z = np.float64(row[OPACITY]), np.float64(row[DEPTH])
+                red, green, blue = np.float64(row[RED]), np.float64(row[RED + 1]), np.float64(row[RED + 2])
+                for ky in range(y1 - y0 + 1):
+                    ly = y0 - y_lo + ky
+                    kx_lo, kx_hi = _row_span(x_axis, x1 - x0 + 1, y_axis[DISTANCE_SQ, ky])
+                    for kx in range(kx_lo, kx_hi + 1):
+                        lx = x0 - x_lo + kx
+                        if done[ly, lx]:
+                            continue
+                        raw_alpha = opacity * x_axis[FALLOFF, kx] * y_axis[FALLOFF, ky]
+                        alpha = min(raw_alpha, ALPHA_MAX)
+                        pixel = pixels[ly, lx]
+                        t = pixel[_PIXEL_T]
+                        t_next = t * (1.0 - alpha)
+                        if t_next < TRANSMITTANCE_MIN:
+                            done[ly, lx] = True
+                            pixels_left -= 1
+                            continue
+                        weight = alpha * t
+                        pixel[_PIXEL_RED] += weight * red
+                        pixel[_PIXEL_RED + 1] += weight * green
+                        pixel[_PIXEL_RED + 2] += weight * blue
+                        pixel[_PIXEL_DEPTH] += weight * z
+                        pixel[_PIXEL_SILHOUETTE] += weight
+                        pixel[_PIXEL_T] = t_next
+                        contributors[ly, lx] = entry - start + 1
+            for ly in range(tile_h):
+                for lx in range(tile_w):
                     pixel = pixels[ly, lx]
-                    t = pixel[_PIXEL_T]
-                    t_next = t * (1.0 - alpha)
-                    if t_next < TRANSMITTANCE_MIN:
-                        done[ly, lx] = True
-                        pixels_left -= 1
-                        continue
-                    weight = alpha * t
-                    pixel[_PIXEL_RED] += weight * red
-                    pixel[_PIXEL_RED + 1] += weight * green
-                    pixel[_PIXEL_RED + 2] += weight * blue
-                    pixel[_PIXEL_DEPTH] += weight * z
-                    pixel[_PIXEL_SILHOUETTE] += weight
-                    pixel[_PIXEL_T] = t_next
-                    contributors[ly, lx] = entry - start + 1
-        for ly in range(tile_h):
-            for lx in range(tile_w):
-                pixel = pixels[ly, lx]
-                for channel in range(3):
-                    out_rgb[y_lo + ly, x_lo + lx, channel] = pixel[_PIXEL_RED + channel] + pixel[_PIXEL_T] * background[channel]
-                out_depth[y_lo + ly, x_lo + lx] = pixel[_PIXEL_DEPTH]
-                out_silhouette[y_lo + ly, x_lo + lx] = pixel[_PIXEL_SILHOUETTE]
-                out_transmittance[y_lo + ly, x_lo + lx] = pixel[_PIXEL_T]
-                out_contributors[y_lo + ly, x_lo + lx] = contributors[ly, lx]
+                    for channel in range(3):
+                        out_rgb[y_lo + ly, x_lo + lx, channel] = pixel[_PIXEL_RED + channel] + pixel[_PIXEL_T] * background[channel]
+                    out_depth[y_lo + ly, x_lo + lx] = pixel[_PIXEL_DEPTH]
+                    out_silhouette[y_lo + ly, x_lo + lx] = pixel[_PIXEL_SILHOUETTE]
+                    out_transmittance[y_lo + ly, x_lo + lx] = pixel[_PIXEL_T]
+                    out_contributors[y_lo + ly, x_lo + lx] = contributors[ly, lx]
 
 
 def composite_forward(
@@ -389,102 +469,109 @@ def composite_forward(
     out_transmittance = np.empty((height, width))
     out_contributors = np.empty((height, width), np.int32)
     _forward(
-        bins.entry_rows, bins.tile_starts, bins.tiles_x, TILE_PX, np.asarray(background_rgb, np.float64),
+        bins.entry_rows, bins.tile_starts, bins.tile_groups, bins.group_starts, bins.tiles_x, TILE_PX, np.asarray(background_rgb, np.float64),
         out_rgb, out_depth, out_silhouette, out_transmittance, out_contributors,
     )
     return out_rgb, out_depth, out_silhouette, ForwardState(out_transmittance, out_contributors)
 
 
 @numba.njit(parallel=True, cache=True)
-def _backward(entry_rows, tile_starts, tiles_x, tile_px, background, transmittance_final, contributors, grad_rgb, grad_depth, grad_silhouette, entry_grads):
+def _backward(entry_rows, tile_starts, tile_groups, group_starts, tiles_x, tile_px, background, transmittance_final, contributors, grad_rgb, grad_depth, grad_silhouette, entry_grads):
     height, width = grad_depth.shape
-    for tile in numba.prange(tile_starts.size - 1):
-        y_lo = (tile // tiles_x) * tile_px
-        x_lo = (tile % tiles_x) * tile_px
-        y_hi = min(y_lo + tile_px, height) - 1
-        x_hi = min(x_lo + tile_px, width) - 1
-        tile_h, tile_w = y_hi - y_lo + 1, x_hi - x_lo + 1
-        transmittance = transmittance_final[y_lo : y_hi + 1, x_lo : x_hi + 1].copy()
-        used = contributors[y_lo : y_hi + 1, x_lo : x_hi + 1]
-        pixel_grads = np.empty((tile_h, tile_w, 5))  # dL/d(red, green, blue, depth, silhouette) of the pixel
-        # behind: what lies behind the current Gaussian per unit transmittance in front of it (colour, depth and
-        # silhouette), already dotted with the pixel's gradients; it is updated linearly, so one scalar suffices.
-        behind = np.zeros((tile_h, tile_w))
-        # T_final * dL/dT_final through the background term C += T_final * bg.
-        background_term = np.zeros((tile_h, tile_w))
-        for ly in range(tile_h):
-            for lx in range(tile_w):
-                for channel in range(3):
-                    pixel_grads[ly, lx, channel] = grad_rgb[y_lo + ly, x_lo + lx, channel]
-                    background_term[ly, lx] += background[channel] * grad_rgb[y_lo + ly, x_lo + lx, channel]
-                pixel_grads[ly, lx, 3] = grad_depth[y_lo + ly, x_lo + lx]
-                pixel_grads[ly, lx, 4] = grad_silhouette[y_lo + ly, x_lo + lx]
-                background_term[ly, lx] *= transmittance[ly, lx]
-        x_axis, y_axis = np.empty((3, tile_w)), np.empty((3, tile_h))
-        start, end = tile_starts[tile], tile_starts[tile + 1]
-        last_used = used.max()
-        entry_grads[start + last_used : end] = 0.0  # behind every pixel's early stop: no gradient
-        for position in range(last_used - 1, -1, -1):
-            entry = start + position
-            row = entry_rows[entry]
-            grad = entry_grads[entry]  # this tile's own rows: no other thread writes them
-            x0, x1, y0, y1 = _entry_box(row, x_lo, x_hi, y_lo, y_hi)
-            half_inv_radius_sq = _footprint(row, x0, x1, y0, y1, x_axis, y_axis)
-            radius, opacity, z = np.float64(row[RADIUS]), np.float64(row[OPACITY]), np.float64(row[DEPTH])
-            red, green, blue = np.float64(row[RED]), np.float64(row[RED + 1]), np.float64(row[RED + 2])
-            # d alpha / d(o, u, v, r) = alpha * (1 / o, dx / r^2, dy / r^2, q / r) with q = (dx^2 + dy^2) / r^2 and
-            # alpha = o fx fy: sum grad_alpha * fx * (1, dx, dx^2 / r^2) along a row, then weigh rows by fy.
-            grad_z = grad_red = grad_green = grad_blue = 0.0
-            sum_opacity = sum_u = sum_v = sum_radius = 0.0
-            for ky in range(y1 - y0 + 1):
-                ly = y0 - y_lo + ky
-                kx_lo, kx_hi = _row_span(x_axis, x1 - x0 + 1, y_axis[DISTANCE_SQ, ky])
-                row_falloff = row_offset = row_distance_sq = 0.0
-                for kx in range(kx_lo, kx_hi + 1):
-                    lx = x0 - x_lo + kx
-                    if position >= used[ly, lx]:
-                        continue
-                    raw_alpha = opacity * x_axis[FALLOFF, kx] * y_axis[FALLOFF, ky]
-                    alpha = min(raw_alpha, ALPHA_MAX)
-                    inv_one_minus_alpha = 1.0 / (1.0 - alpha)
-                    t = transmittance[ly, lx] * inv_one_minus_alpha
-                    transmittance[ly, lx] = t
-                    weight = alpha * t
-                    g_red, g_green, g_blue = pixel_grads[ly, lx, 0], pixel_grads[ly, lx, 1], pixel_grads[ly, lx, 2]
-                    g_depth, g_silhouette = pixel_grads[ly, lx, 3], pixel_grads[ly, lx, 4]
-                    grad_red += weight * g_red
-                    grad_green += weight * g_green
-                    grad_blue += weight * g_blue
-                    grad_z += weight * g_depth
-                    own = red * g_red + green * g_green + blue * g_blue + z * g_depth + g_silhouette
-                    grad_alpha = t * (own - behind[ly, lx]) - background_term[ly, lx] * inv_one_minus_alpha
-                    behind[ly, lx] += alpha * (own - behind[ly, lx])
-                    if raw_alpha > ALPHA_MAX:
-                        continue  # clamped: alpha does not depend on the parameters here
-                    along_x = grad_alpha * x_axis[FALLOFF, kx]
-                    row_falloff += along_x
-                    row_offset += along_x * x_axis[OFFSET, kx]
-                    row_distance_sq += along_x * x_axis[DISTANCE_SQ, kx]
-                falloff_y = y_axis[FALLOFF, ky]
-                sum_opacity += falloff_y * row_falloff
-                sum_u += falloff_y * row_offset
-                sum_v += falloff_y * y_axis[OFFSET, ky] * row_falloff
-                sum_radius += falloff_y * (row_distance_sq + y_axis[DISTANCE_SQ, ky] * row_falloff)
-            grad[U] = 2.0 * half_inv_radius_sq * opacity * sum_u
-            grad[V] = 2.0 * half_inv_radius_sq * opacity * sum_v
-            grad[RADIUS] = opacity * sum_radius / radius
-            grad[DEPTH], grad[OPACITY] = grad_z, sum_opacity
-            grad[RED], grad[RED + 1], grad[RED + 2] = grad_red, grad_green, grad_blue
+    for group in numba.prange(group_starts.size - 1):
+        for tile in tile_groups[group_starts[group] : group_starts[group + 1]]:
+            y_lo = (tile // tiles_x) * tile_px
+            x_lo = (tile % tiles_x) * tile_px
+            y_hi = min(y_lo + tile_px, height) - 1
+            x_hi = min(x_lo + tile_px, width) - 1
+            tile_h, tile_w = y_hi - y_lo + 1, x_hi - x_lo + 1
+            transmittance = transmittance_final[y_lo : y_hi + 1, x_lo : x_hi + 1].copy()
+            used = contributors[y_lo : y_hi + 1, x_lo : x_hi + 1]
+            pixel_grads = np.empty((tile_h, tile_w, 5))  # dL/d(red, green, blue, depth, silhouette) of the pixel
+            # behind: what lies behind the current Gaussian per unit transmittance in front of it (colour, depth and
+            # silhouette), already dotted with the pixel's gradients; it is updated linearly, so one scalar suffices.
+            behind = np.zeros((tile_h, tile_w))
+            # T_final * dL/dT_final through the background term C += T_final * bg.
+            background_term = np.zeros((tile_h, tile_w))
+            for ly in range(tile_h):
+                for lx in range(tile_w):
+                    for channel in range(3):
+                        pixel_grads[ly, lx, channel] = grad_rgb[y_lo + ly, x_lo + lx, channel]
+                        background_term[ly, lx] += background[channel] * grad_rgb[y_lo + ly, x_lo + lx, channel]
+                    pixel_grads[ly, lx, 3] = grad_depth[y_lo + ly, x_lo + lx]
+                    pixel_grads[ly, lx, 4] = grad_silhouette[y_lo + ly, x_lo + lx]
+                    background_term[ly, lx] *= transmittance[ly, lx]
+            x_axis, y_axis = np.empty((3, tile_w)), np.empty((3, tile_h))
+            start, end = tile_starts[tile], tile_starts[tile + 1]
+            last_used = used.max()
+            entry_grads[start + last_used : end] = 0.0  # behind every pixel's early stop: no gradient
+            for position in range(last_used - 1, -1, -1):
+                entry = start + position
+                row = entry_rows[entry]
+                grad = entry_grads[entry]  # this tile's own rows: no other thread writes them
+                x0, x1, y0, y1 = _entry_box(row, x_lo, x_hi, y_lo, y_hi)
+                half_inv_radius_sq = _footprint(row, x0, x1, y0, y1, x_axis, y_axis)
+                radius, opacity, z = np.float64(row[RADIUS]), np.float64(row[OPACITY]), np.float64(row[DEPTH])
+                red, green, blue = np.float64(row[RED]), np.float64(row[RED + 1]), np.float64(row[RED + 2])
+                # d alpha / d(o, u, v, r) = alpha * (1 / o, dx / r^2, dy / r^2, q / r) with q = (dx^2 + dy^2) / r^2 and
+                # alpha = o fx fy: sum grad_alpha * fx * (1, dx, dx^2 / r^2) along a row, then weigh rows by fy.
+                grad_z = grad_red = grad_green = grad_blue = 0.0
+                sum_opacity = sum_u = sum_v = sum_radius = 0.0
+                for ky in range(y1 - y0 + 1):
+                    ly = y0 - y_lo + ky
+                    kx_lo, kx_hi = _row_span(x_axis, x1 - x0 + 1, y_axis[DISTANCE_SQ, ky])
+                    row_falloff = row_offset = row_distance_sq = 0.0
+                    for kx in range(kx_lo, kx_hi + 1):
+                        lx = x0 - x_lo + kx
+                        if position >= used[ly, lx]:
+                            continue
+                        raw_alpha = opacity * x_axis[FALLOFF, kx] * y_axis[FALLOFF, ky]
+                        alpha = min(raw_alpha, ALPHA_MAX)
+                        inv_one_minus_alpha = 1.0 / (1.0 - alpha)
+                        t = transmittance[ly, lx] * inv_one_minus_alpha
+                        transmittance[ly, lx] = t
+                        weight = alpha * t
+                        g_red, g_green, g_blue = pixel_grads[ly, lx, 0], pixel_grads[ly, lx, 1], pixel_grads[ly, lx, 2]
+                        g_depth, g_silhouette = pixel_grads[ly, lx, 3], pixel_grads[ly, lx, 4]
+                        grad_red += weight * g_red
+                        grad_green += weight * g_green
+                        grad_blue += weight * g_blue
+                        grad_z += weight * g_depth
+                        own = red * g_red + green * g_green + blue * g_blue + z * g_depth + g_silhouette
+                        grad_alpha = t * (own - behind[ly, lx]) - background_term[ly, lx] * inv_one_minus_alpha
+                        behind[ly, lx] += alpha * (own - behind[ly, lx])
+                        if raw_alpha > ALPHA_MAX:
+                            continue  # clamped: alpha does not depend on the parameters here
+                        along_x = grad_alpha * x_axis[FALLOFF, kx]
+                        row_falloff += along_x
+                        row_offset += along_x * x_axis[OFFSET, kx]
+                        row_distance_sq += along_x * x_axis[DISTANCE_SQ, kx]
+                    falloff_y = y_axis[FALLOFF, ky]
+                    sum_opacity += falloff_y * row_falloff
+                    sum_u += falloff_y * row_offset
+                    sum_v += falloff_y * y_axis[OFFSET, ky] * row_falloff
+                    sum_radius += falloff_y * (row_distance_sq + y_axis[DISTANCE_SQ, ky] * row_falloff)
+                grad[U] = 2.0 * half_inv_radius_sq * opacity * sum_u
+                grad[V] = 2.0 * half_inv_radius_sq * opacity * sum_v
+                grad[RADIUS] = opacity * sum_radius / radius
+                grad[DEPTH], grad[OPACITY] = grad_z, sum_opacity
+                grad[RED], grad[RED + 1], grad[RED + 2] = grad_red, grad_green, grad_blue
 
 
 @numba.njit(parallel=True, cache=True)
-def _sum_entries(order, slot_starts, slot_entries, entry_grads, grads):
-    for k in numba.prange(order.size):
+def _sum_entries(entry_sums, slot_starts, slot_entries, entry_grads, grads):
+    # In entry order, each Gaussian summed at its first entry (which is ``entry``, read directly): most Gaussians
+    # have one entry, so entry_grads is read in sequence, with no chain of dependent lookups before each load.
+    for entry in numba.prange(entry_sums.size):
+        i = entry_sums[entry]
+        if i < 0:
+            continue
+        first_slot, end_slot = slot_starts[i], slot_starts[i + 1]
         for column in range(PACKED_COLUMNS):
-            total = 0.0  # float64 whatever the dtype of grads
-            for slot in range(slot_starts[k], slot_starts[k + 1]):
+            total = np.float64(entry_grads[entry, column])  # float64 whatever the dtype of grads
+            for slot in range(first_slot + 1, end_slot):
                 total += entry_grads[slot_entries[slot], column]
-            grads[order[k], column] = total
+            grads[i, column] = total
 
 
 def composite_backward(
@@ -499,11 +586,13 @@ def composite_backward(
     """Gradients (N, PACKED_COLUMNS) of ``dtype`` (summed in float64, rounded once) of the loss w.r.t. the packed
     columns, given its gradients w.r.t. the rendered rgb (H, W, 3), depth (H, W) and silhouette (H, W), float32 or
     float64 (read as float64)."""
+    if bins.slot_entries is None:
+        raise ValueError("composite_backward: the bins were made without slots (bin_tiles(..., with_slots=False))")
     entry_grads = np.empty((bins.slot_entries.size, PACKED_COLUMNS))  # _backward writes every row
     _backward(
-        bins.entry_rows, bins.tile_starts, bins.tiles_x, TILE_PX, np.asarray(background_rgb, np.float64),
+        bins.entry_rows, bins.tile_starts, bins.tile_groups, bins.group_starts, bins.tiles_x, TILE_PX, np.asarray(background_rgb, np.float64),
         state.transmittance_final, state.contributors, grad_rgb, grad_depth, grad_silhouette, entry_grads,
     )
-    grads = np.zeros((bins.gaussian_count, PACKED_COLUMNS), dtype)  # culled Gaussians keep zeros
-    _sum_entries(bins.order, bins.slot_starts, bins.slot_entries, entry_grads, grads)
+    grads = np.zeros((bins.slot_starts.size - 1, PACKED_COLUMNS), dtype)  # culled Gaussians keep zeros
+    _sum_entries(bins.entry_sums, bins.slot_starts, bins.slot_entries, entry_grads, grads)
     return grads

@@ -98,7 +98,7 @@ def render_cpu_untracked(
     arrays = [field.detach().to("cpu", storage).contiguous().numpy() for field in fields]
     intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)
     packed = cpu_kernel.project(*arrays, camera_from_world.detach().cpu().numpy(), intrinsics)
-    bins = cpu_kernel.bin_tiles(packed, camera.width, camera.height)
+    bins = cpu_kernel.bin_tiles(packed, camera.width, camera.height, with_slots=False)
     background = np.asarray(background_rgb, np.float64)
     maps = cpu_kernel.composite_forward(bins, camera.width, camera.height, background, packed.dtype)[:3]
     device = gaussians.means_m.device
