@@ -108,9 +108,17 @@ def camera_from_world_tensor(world_from_camera: torch.Tensor, pose_delta: torch.
 def camera_frame_means(
     gaussians: GaussianTensors, world_from_camera: torch.Tensor, pose_delta: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """(N, 3) means in the camera frame of ``world_from_camera @ exp_se3(pose_delta)``, dtype of the means."""
+    """(N, 3) means in the camera frame of ``world_from_camera @ exp_se3(pose_delta)``, dtype of the means.
+
+    Element by element in a fixed order, ((x r0 + y r1) + z r2) + t, as :func:`cpu_kernel.project` computes it: a
+    matmul's rounding depends on the BLAS kernel (MKL fuses multiply-adds on AVX-512 machines), and the forward-only
+    path must give the same depths, bit for bit, or ties in the front-to-back order break differently.
+    """
     camera_from_world = camera_from_world_tensor(world_from_camera, pose_delta).to(gaussians.means_m)
-    return gaussians.means_m @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]
+    x, y, z = gaussians.means_m.unbind(1)
+    rotation, translation = camera_from_world[:3, :3], camera_from_world[:3, 3]
+    return torch.stack([((x * rotation[row, 0] + y * rotation[row, 1]) + z * rotation[row, 2]) + translation[row]
+                        for row in range(3)], dim=1)
 
 
 def project_to_screen(gaussians: GaussianTensors, means_cam_m: torch.Tensor, camera: Camera) -> ScreenGaussians:
