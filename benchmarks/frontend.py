@@ -10,7 +10,8 @@ by the process CPU time over the same calls (all threads), which other processes
 less than wall time, and ``load`` is the 1-minute load average when the row started; peak memory is the
 child's ``ru_maxrss`` (read with wait4, so it includes the decoded images and Python itself). ATE is the RMSE
 after SE(3) alignment; RPE is the translational RMSE between consecutive frames. The table goes to stdout,
-the rows to benchmarks/results/frontend.json.
+the rows to benchmarks/results/frontend.json. 7-Scenes is read with colour resampled into the depth camera
+(benchmarks/sequences.py); ``--unregistered-colour`` reads it pixel for pixel as its camera.txt says.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.export.atomic import atomic_write_text  # noqa: E402
 
 SEQUENCES = ("7scenes_redkitchen_0-699", "tum_fr1_xyz_first37")
@@ -56,12 +58,12 @@ def make_frontend(method: str, camera):
     raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
 
 
-def run_one(method: str, folder: Path, max_frames: int | None, output: Path) -> None:
+def run_one(method: str, folder: Path, max_frames: int | None, output: Path, camera_file: Path | None) -> None:
     """Child process: track the sequence, evaluate, write one JSON row."""
     from tambridge.evaluation.trajectory import evaluate_trajectory
     from tambridge.io.tum import open_sequence
 
-    sequence = open_sequence(folder, max_frames=max_frames)
+    sequence = open_sequence(folder, camera_file=camera_file, max_frames=max_frames)
     frontend = make_frontend(method, sequence.camera)
     tracking_s = reading_s = cpu_s = 0.0
     load = os.getloadavg()[0]
@@ -80,6 +82,7 @@ def run_one(method: str, folder: Path, max_frames: int | None, output: Path) -> 
     errors = evaluate_trajectory(result.trajectory, sequence.ground_truth, align="se3")
     row = {
         "method": METHODS[method], "key": method, "sequence": folder.name, "frames": len(sequence),
+        "camera_file": None if camera_file is None else str(camera_file.relative_to(ROOT)),
         "ate_cm": 100 * errors.ate_rmse_m, "rpe_cm": 100 * errors.rpe_trans_rmse_m, "rpe_deg": errors.rpe_rot_rmse_deg,
         "fps": len(sequence) / tracking_s, "tracking_s": tracking_s, "read_s": reading_s,
         "cpu_fps": len(sequence) / cpu_s, "cpu_s": cpu_s, "load_1min": load,
@@ -90,10 +93,12 @@ def run_one(method: str, folder: Path, max_frames: int | None, output: Path) -> 
     atomic_write_text(output, json.dumps(row))
 
 
-def run_child(method: str, folder: Path, max_frames: int | None) -> dict:
+def run_child(method: str, folder: Path, max_frames: int | None, camera_file: Path | None) -> dict:
     with tempfile.TemporaryDirectory() as temp:
         output = Path(temp) / "row.json"
         command = [sys.executable, __file__, "--one", method, str(folder), str(output)]
+        if camera_file is not None:
+            command += ["--camera", str(camera_file)]
         if max_frames is not None:
             command += ["--max-frames", str(max_frames)]
         child = subprocess.Popen(command, cwd=ROOT)
@@ -130,16 +135,20 @@ def main() -> None:
     parser.add_argument("--sequences", nargs="*", default=list(SEQUENCES))
     parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
     parser.add_argument("--max-frames", type=int)
+    parser.add_argument("--unregistered-colour", action="store_true",
+                        help="read 7-Scenes as its camera.txt says (colour taken pixel for pixel with depth)")
     parser.add_argument("--one", nargs=3, metavar=("METHOD", "FOLDER", "OUTPUT"), help=argparse.SUPPRESS)
+    parser.add_argument("--camera", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         method, folder, output = args.one
-        run_one(method, Path(folder), args.max_frames, Path(output))
+        run_one(method, Path(folder), args.max_frames, Path(output), args.camera)
         return
     rows = []
     for name in args.sequences:
+        camera_file = camera_file_for(args.data / name, registered_colour=not args.unregistered_colour)
         for method in args.methods:
-            rows.append(run_child(method, args.data / name, args.max_frames))
+            rows.append(run_child(method, args.data / name, args.max_frames, camera_file))
             print(f"{name} / {METHODS[method]}: done", file=sys.stderr, flush=True)
     table = format_table(rows)
     print(table)

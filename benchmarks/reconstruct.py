@@ -8,7 +8,7 @@ wait4), written under benchmarks/results/runs/. Rendering scores are those of me
 resolution from the rendering poses against the input frames, on every 5th frame that is not a mapping view
 ("novel") and on the mapping views. ``fps`` is metrics.json's end-to-end rate (read, tracking, bridge, mapping,
 final pass, export; the rendering evaluation is not part of it); ``wall fps`` counts the whole process.
-The synthetic sequence is a 320x240 anti-aliased loop with exact registered depth (see SYNTHETIC below).
+7-Scenes is read with colour resampled into the depth camera (benchmarks/sequences.py). The synthetic sequence is a 320x240 anti-aliased loop with exact registered depth (see SYNTHETIC below).
 Prints a table and writes benchmarks/results/reconstruct.json.
 """
 
@@ -27,6 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.export.atomic import atomic_write_text  # noqa: E402
 from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence  # noqa: E402
 
@@ -124,7 +125,8 @@ def main() -> None:
     parser.add_argument("--skip-synthetic", action="store_true")
     arguments = parser.parse_args()
     runs = ROOT / "benchmarks" / "results" / "runs"
-    cases = [(arguments.data / "7scenes_redkitchen_0-699", arguments.max_frames or None, [])]
+    kitchen = arguments.data / "7scenes_redkitchen_0-699"
+    cases = [(kitchen, arguments.max_frames or None, ["--camera", str(camera_file_for(kitchen))])]
     if not arguments.skip_synthetic:
         synthetic = runs / "synthetic_loop_120_320x240_ss3"
         if not (synthetic / "groundtruth.txt").is_file():

@@ -30,6 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.io.tum import open_sequence  # noqa: E402
 from tambridge.trajectory import read_tum_trajectory  # noqa: E402
 
@@ -44,6 +45,8 @@ class Method:
     name: str
     command: tuple[str, ...]
     monocular: bool = False
+    # False: read the folder with its own camera file even where CAMERA_FILES has a better one (the ablation).
+    registered_colour: bool = True
 
 
 METHODS = (
@@ -54,6 +57,8 @@ METHODS = (
     Method("open3d frame-to-frame", ("reconstruct", "--set", "frontend.kind=open3d_f2f", "--set", "mapper.enabled=false",
                                      "--set", "mesh.enabled=false")),
     Method("COLMAP (pycolmap, every 5th frame)", ("colmap", "--every", "5"), monocular=True),
+    Method("tambridge default, colour not registered", ("reconstruct", "--config", "configs/default.yaml"),
+           registered_colour=False),
 )
 
 
@@ -73,6 +78,9 @@ def run_method(method: Method, sequence: Path, out: Path, max_frames: int | None
     ``device`` goes to tambridge runs (``reconstruct --device``); other methods run on the CPU.
     """
     command = [sys.executable, str(ROOT / "cli.py"), *method.command, str(sequence), "-o", str(out)]
+    camera_file = camera_file_for(sequence, method.registered_colour)
+    if camera_file is not None:  # every method reads the sequence the same way
+        command += ["--camera", str(camera_file)]
     if method.command[0] == "reconstruct":
         command += ["--quiet", "--device", device]
     if max_frames is not None:
@@ -195,6 +203,8 @@ def main() -> None:
         for method in METHODS:
             if arguments.methods and method.name not in arguments.methods:
                 continue
+            if not method.registered_colour and camera_file_for(sequence) is None:
+                continue  # its colour is registered: the same run as the default
             out = runs / f"{sequence.name}__{method.name.split(' (')[0].replace(' ', '_')}"
             print(f"running {method.name} on {sequence.name} ...", flush=True)
             rows.append(run_method(method, sequence, out, max_frames, "cuda" if arguments.gpu else "cpu"))
