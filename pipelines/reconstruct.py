@@ -157,7 +157,7 @@ def reconstruct(
         live_view = RerunViewer(viewer, sequence.camera) if viewer else None
         gaussian_counts: list[tuple[int, int]] = []
         frames_without_depth: list[int] = []
-        fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.camera)
+        fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.sensor)
         start_frame, keyframes_so_far = 0, 0
         if resume:
             check_resumable(checkpoint_file, checkpoint, to_dict(config), fingerprint)

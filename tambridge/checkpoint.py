@@ -88,14 +88,15 @@ def restore_attributes(owner: object, state: dict[str, Any]) -> None:
 # ---- the sequence ---------------------------------------------------------------------------------------------
 
 
-def sequence_fingerprint(folder: Path, timestamps_s: np.ndarray, camera: object) -> dict:
-    """What identifies the frames a run reads: folder, frame count, a hash of the timestamps, the camera."""
+def sequence_fingerprint(folder: Path, timestamps_s: np.ndarray, sensor: object) -> dict:
+    """What identifies the frames a run reads: folder, frame count, a hash of the timestamps, the sensor (camera,
+    depth encoding and, for unregistered colour, the colour camera: a resumed run must resample colour alike)."""
     timestamps = np.ascontiguousarray(np.asarray(timestamps_s, np.float64))
     return {
         "folder": str(Path(folder).resolve()),
         "frames": int(len(timestamps)),
         "timestamps_sha1": hashlib.sha1(timestamps.tobytes()).hexdigest(),
-        "camera": repr(camera),
+        "camera": repr(sensor),
     }
 
 

@@ -99,7 +99,7 @@ def _checkpoint(config: dict, fingerprint: dict, next_frame: int = 5) -> Checkpo
 
 def test_resume_refuses_another_config_or_sequence(synthetic_sequence_dir, tmp_path):
     sequence = open_sequence(synthetic_sequence_dir)
-    fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.camera)
+    fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.sensor)
     config = to_dict(load_config(None, ["checkpoint.every_keyframes=2"]))
     path = tmp_path / "checkpoint.pkl"
     # How often a run checkpoints may change; everything else must match.
@@ -111,7 +111,7 @@ def test_resume_refuses_another_config_or_sequence(synthetic_sequence_dir, tmp_p
     shorter = open_sequence(synthetic_sequence_dir, max_frames=20)
     with pytest.raises(CheckpointError, match="another sequence"):
         check_resumable(path, _checkpoint(config, fingerprint), config,
-                        sequence_fingerprint(shorter.folder, shorter.timestamps_s, shorter.camera))
+                        sequence_fingerprint(shorter.folder, shorter.timestamps_s, shorter.sensor))
     with pytest.raises(CheckpointError, match="at frame 99 of a 30-frame"):
         check_resumable(path, _checkpoint(config, fingerprint, next_frame=99), config, fingerprint)
 
