@@ -48,7 +48,8 @@ OVERLAP_SAMPLES = 256
 @dataclasses.dataclass
 class MappingView:
     """A keyframe taken as a mapping view. ``keyframe_from_view`` (4x4) is the bridge's pose correction;
-    ``exposure`` its colour transform (None: the mapper does not compensate exposure)."""
+    ``exposure`` its colour transform (None: the mapper does not compensate exposure); ``unexplained`` the share of
+    its depth pixels the map left unexplained once it was mapped (:meth:`GaussianMap.unexplained_fraction`)."""
 
     keyframe_id: int
     frame_index: int
@@ -56,6 +57,7 @@ class MappingView:
     selection: Selection
     refinement: RefinementResult | None
     exposure: ViewExposure | None = None
+    unexplained: float = 0.0
 
 
 def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device("cpu"),
@@ -198,16 +200,20 @@ class MappingStage:
             return self.uncovered(frame, self.rendering_pose(frame.index, result.world_from_camera))
 
     def uncovered(self, frame: Frame, world_from_camera: np.ndarray) -> bool:
-        """Whether the map, rendered at ``world_from_camera``, leaves more than ``mapper.coverage_unexplained`` of
-        the frame's valid depth pixels unexplained (always False with the rule off or an empty map)."""
+        """Whether the map, rendered at ``world_from_camera``, leaves ``mapper.coverage_unexplained`` more of the
+        frame's valid depth pixels unexplained than of its anchor view's (always False with the rule off or no view).
+        The anchor view's share is what the map cannot explain even where it was made (depth noise and holes, a
+        map of one view): on 7-Scenes 4-13 %, on the synthetic loop 0.5-5 %."""
         threshold = self.config.mapper.coverage_unexplained
-        if not threshold or not len(self.map):
+        if not threshold or not self.views:
             return False
         with self.run_log.stage("coverage"):
             depth_m = resize_frame(frame, self.config.mapper.resolution_scale, self.device).depth_m
             fraction = self.map.unexplained_fraction(self.camera, world_from_camera, depth_m)
-        logger.debug("frame %d: %.1f %% of its depth unexplained by the map", frame.index, 100 * fraction)
-        return fraction > threshold
+        floor = self.anchor_view(frame.index).unexplained
+        logger.debug("frame %d: %.1f %% of its depth unexplained by the map (%.1f %% at its view)", frame.index,
+                     100 * fraction, 100 * floor)
+        return fraction - floor > threshold
 
     def map_view(self, view: MappingView, images: ViewImages) -> None:
         """Add a view to the map: densify, optimise over it and its overlapping window, prune."""
@@ -222,6 +228,8 @@ class MappingStage:
         schedule = [0 if k % 2 == 0 or not window else 1 + (k // 2) % len(window) for k in range(self.config.mapper.iterations)]
         losses = self.map.optimise(self.camera, views, schedule, self.exposures([view] + window))
         removed = self.map.prune(self.camera, world_from_camera)
+        if self.config.mapper.coverage_unexplained:
+            view.unexplained = self.map.unexplained_fraction(self.camera, world_from_camera, images.depth_m)
         own = [loss for loss, index in zip(losses, schedule) if index == 0] or [float("nan")]
         logger.info("view %d (frame %d, %s): +%d -%d Gaussians -> %d, window %s, its loss %.4f -> %.4f", len(self.views) - 1,
                     view.frame_index, view.selection.value, added, removed, len(self.map),
