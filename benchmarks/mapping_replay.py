@@ -9,8 +9,9 @@
 at that moment, and the final result (a pickle under benchmarks/results/runs/). ``replay`` feeds those events to
 :class:`MappingStage` exactly as ``reconstruct`` does, so that mapper and bridge settings are compared on the same
 keyframes and poses (a live run's keyframes depend on timing: the ORB frontend's keyframes wait while mapping is
-busy). It prints one JSON line: novel-view and mapping-view PSNR/SSIM at full resolution (as metrics.json), the
-mapping views' position error against ground truth (after an SE(3) alignment of the whole trajectory), seconds
+busy; and the keyframes the mapper asks for where its map lacks coverage, ``mapper.coverage_unexplained``, are
+not recorded: record runs the frontend alone). It prints one JSON line: novel-view and mapping-view PSNR/SSIM at
+full resolution (as metrics.json), the mapping views' position error against ground truth (after an SE(3) alignment of the whole trajectory), seconds
 per stage; ``--per-frame`` adds every novel view's PSNR, ``--track`` the PSNR of some frames after each view
 (forgetting shows there), ``--ground-truth-poses`` maps at the ground-truth poses (the bridge's map points are
 moved by the same alignment, so pair it with bridge.enabled=false unless the frontend is accurate). On 7-Scenes the ground truth is KinectFusion's depth-camera trajectory and colour is

@@ -82,7 +82,8 @@ def track_sequence(
     closure and global BA).
 
     ``on_keyframe(result, frame)`` is called after each frame that made a keyframe (the online mapping); its time
-    is not counted as tracking. ``on_frame(result, frame)`` is called after every frame (the live view).
+    is not counted as tracking. ``on_frame(result, frame)`` is called after every frame (the live view, the
+    mapper's coverage check).
     ``checkpoints`` is told of every keyframe once the frame is mapped (``start_frame > 0``: a resumed run).
     ``prefetch``: frame i+1 is read, and for the ORB frontend its features extracted, in a worker thread while
     frame i is tracked (:class:`FramePrefetcher`), with the results of reading and tracking one frame after the
@@ -187,6 +188,8 @@ def reconstruct(
                                "tracked from colour" if result.tracked else "not tracked")
             if mapping is not None:
                 gaussian_counts.append((frame.index, len(mapping.map)))
+                if mapping.needs_view(result, frame):
+                    frontend.request_keyframe()
             if live_view is not None:
                 with run_log.stage("viewer"):
                     live_view.log_frame(frame.index, frame.timestamp_s, result.world_from_camera, frame.rgb,

@@ -83,6 +83,26 @@ def test_blank_frame_is_reported_and_tracking_continues(sequence, caplog):
     assert ate_rmse_m(estimate, sequence.ground_truth) < 0.03
 
 
+def test_a_requested_keyframe_is_the_next_tracked_frame(sequence):
+    """``request_keyframe`` (the mapper's coverage rule) makes the next frame a keyframe where the ORB rule does
+    not, once. The rule is slowed here (no frame-count or close-point trigger) so that frame 2 is not one by itself."""
+    def keyframe_frames(request_before: int | None) -> list[int]:
+        frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False, keyframe_min_frames=100,
+                                                                  keyframe_close_tracked=0))
+        made = []
+        for index in range(5):
+            if index == request_before:
+                frontend.request_keyframe()
+            if frontend.track(sequence[index]).is_keyframe:
+                made.append(index)
+        return made
+
+    unrequested, requested = keyframe_frames(None), keyframe_frames(2)
+    assert 2 not in unrequested and unrequested[0] == 0
+    # Measured [0, 3] and [0, 2]: the request is used up by frame 2, and frame 3 is then too close to it.
+    assert requested[:2] == [0, 2] and 3 not in requested
+
+
 def _panorama(frame_count: int, seed: int) -> tuple[list[Frame], np.ndarray, object]:
     """A camera turning 380 degrees in place in the synthetic room (the end sees the start again), with Gaussian
     colour noise (sigma 0.03) and Kinect-like depth noise (sigma 0.003 z^2), 240x180."""

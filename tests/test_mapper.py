@@ -10,7 +10,7 @@ from pipelines.mapping import MappingStage, MappingView, evaluation_frames
 from pipelines.reconstruct import reconstruct
 from tambridge.bridge.view_selection import Selection
 from tambridge.config import Config, MapperConfig
-from tambridge.frontend.types import KeyframeEvent
+from tambridge.frontend.types import KeyframeEvent, TrackResult
 from tambridge.gaussians.mapper import (
     ADAM_EPS,
     TORCH_THREADS,
@@ -216,6 +216,41 @@ def test_mapping_a_synthetic_sequence_at_ground_truth_poses(synthetic_sequence_d
     assert views["psnr_db"] > 25.5 and views["ssim"] > 0.88
 
 
+def test_coverage_rule_maps_a_keyframe_that_eq_3_rejects_and_asks_for_one_in_a_gap(synthetic_sequence_dir, tmp_path):
+    """Frames 0 and 8 of the fast 30-frame loop as keyframes at ground-truth poses, frame 8 sharing as many points
+    with frame 0 as frame 0 has (eq. 3: too similar): only the coverage rule maps it, and the frames between render
+    better for it. Between the keyframes, every ``coverage_check_every``-th tracked frame is checked."""
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=9)
+    poses = sequence.ground_truth.world_from_camera
+    psnr_db, requests = {}, {}
+    for unexplained in (0.0, MapperConfig().coverage_unexplained):
+        config = Config()
+        config.mapper.resolution_scale = 0.5
+        config.mapper.iterations = 10
+        config.mapper.coverage_unexplained = unexplained
+        config.mapper.coverage_check_every = 4
+        run_log = RunLog(tmp_path / "run.log")
+        try:
+            stage = MappingStage(sequence, config, run_log)
+            keyframe_poses = {}
+            for keyframe_id, index in enumerate((0, 8)):
+                keyframe_poses[keyframe_id] = poses[index]
+                event = KeyframeEvent(keyframe_id, index, 0.0, poses[index], np.zeros((0, 3)), np.zeros((0, 2)),
+                                      np.zeros(0, np.int64), shared_with_previous=100, previous_total=100)
+                stage.on_keyframe(event, sequence[index], dict(keyframe_poses))
+                if index == 0:
+                    requests[unexplained] = [stage.needs_view(TrackResult(i, 0.0, poses[i], True, False, 100), sequence[i])
+                                             for i in range(1, 5)]
+            psnr_db[unexplained] = np.mean(stage.evaluate(poses, [4, 6]).psnr_db)
+        finally:
+            run_log.close()
+        selections = [view.selection for view in stage.views]
+        assert selections == ([Selection.FIRST] if not unexplained else [Selection.FIRST, Selection.UNCOVERED])
+    assert requests == {0.0: [False] * 4, MapperConfig().coverage_unexplained: [False, False, False, True]}
+    # Measured 9.9 -> 18.7 dB (frame 0 alone leaves over half of frames 4 and 6 unexplained).
+    assert psnr_db[MapperConfig().coverage_unexplained] > psnr_db[0.0] + 5.0
+
+
 def test_rendering_poses_carry_the_bridge_correction_to_the_frames_after_a_view(synthetic_sequence_dir, tmp_path):
     sequence = open_sequence(synthetic_sequence_dir, max_frames=6)
     run_log = RunLog(tmp_path / "run.log")
@@ -253,6 +288,21 @@ def test_reconstruct_writes_splats_and_rendering_metrics(synthetic_sequence_dir,
     assert metrics["mapping_views"] == metrics["bridge"]["view_selection"]["FIRST"] + metrics["bridge"]["view_selection"]["NO_SPARSE_MAP"]
     assert {"tracking", "mapping", "evaluation"} <= set(metrics["seconds_per_stage"])
     assert metrics["fps_end_to_end"] > 0 and result.metrics == metrics
+
+
+def test_reconstruct_asks_the_frontend_for_keyframes_where_the_map_lacks_coverage(synthetic_sequence_dir, tmp_path):
+    """An Open3D frontend set to make no keyframe after the first by itself: the coverage rule's requests make them."""
+    config = Config()
+    config.input.max_frames = 12
+    config.frontend.kind = "open3d"
+    config.frontend.open3d.keyframe_translation_m = 100.0
+    config.frontend.open3d.keyframe_rotation_deg = 360.0
+    config.frontend.open3d.keyframe_max_frames = 100
+    config.mesh.enabled = False
+    metrics = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False).metrics
+    # Measured 4 keyframes (frames 0, 3, 6, 9: the first check, 2 frames after a keyframe, finds the map lacking).
+    assert metrics["keyframes"] == metrics["mapping_views"] >= 3
+    assert metrics["seconds_per_stage"]["coverage"] > 0
 
 
 def test_pixels_without_colour_data_pull_on_nothing():

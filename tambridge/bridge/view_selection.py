@@ -4,6 +4,10 @@ Keyframe i is selected when ``beta <= M(i-1, i) < alpha * T(i-1, i)``: it shares
 previous keyframe for the reprojection term of the pose refinement (lower bound) but not so many that it adds
 nothing new to the map (upper bound). ``M`` is the number of map points keyframe i shares with keyframe i-1,
 ``T`` the number of map points matched in keyframe i-1.
+
+Eq. 3 looks at the sparse map only. A keyframe it rejects is still taken when the Gaussian map leaves too much of
+it unexplained (``Selection.UNCOVERED``, decided by the mapping stage): moving back from a scene, a camera keeps
+tracking the same points (``M`` stays near ``T``) while new surfaces enter the image at its borders.
 """
 
 from __future__ import annotations
@@ -22,10 +26,11 @@ class Selection(enum.Enum):
     TOO_SIMILAR = "M >= alpha * T"
     NO_SPARSE_MAP = "frontend has no sparse map (T = 0): every keyframe is a view"
     BRIDGE_OFF = "bridge disabled: every keyframe is a view"
+    UNCOVERED = "rejected by eq. 3, but the Gaussian map leaves too much of it unexplained"
 
     @property
     def selected(self) -> bool:
-        return self in (Selection.FIRST, Selection.SELECTED, Selection.NO_SPARSE_MAP, Selection.BRIDGE_OFF)
+        return self in (Selection.FIRST, Selection.SELECTED, Selection.NO_SPARSE_MAP, Selection.BRIDGE_OFF, Selection.UNCOVERED)
 
 
 def covisibility_selection(shared_with_previous: int, previous_total: int, alpha: float, beta: int) -> Selection:

@@ -70,6 +70,7 @@ class Open3dFrontend:
         self._keyframe_from_last = np.eye(4)
         self._last_from_current = np.eye(4)  # constant-velocity prior
         self._frames_since_keyframe = 0
+        self._keyframe_requested = False
         self._records: list[tuple[int, float, int, np.ndarray, bool]] = []
 
     @contextmanager
@@ -109,7 +110,7 @@ class Open3dFrontend:
         translation_m, rotation_deg = _motion_size(keyframe_from_current)
         event, loop_closed = None, False
         if success and (translation_m > config.keyframe_translation_m or rotation_deg > config.keyframe_rotation_deg
-                        or self._frames_since_keyframe >= config.keyframe_max_frames):
+                        or self._frames_since_keyframe >= config.keyframe_max_frames or self._keyframe_requested):
             event, loop_closed = self._new_keyframe(frame, rgbd, world_from_camera, keyframe_from_current, information)
             world_from_camera = self._keyframes[-1].world_from_camera
             self._record(frame, np.eye(4), True)
@@ -132,6 +133,7 @@ class Open3dFrontend:
         self._keyframe_rgbd = rgbd
         self._keyframe_from_last = np.eye(4)
         self._frames_since_keyframe = 0
+        self._keyframe_requested = False
         return KeyframeEvent(
             keyframe_id=keyframe.id, frame_index=frame.index, timestamp_s=frame.timestamp_s,
             world_from_camera=world_from_camera.copy(), points_world_m=np.zeros((0, 3)), keypoints_px=np.zeros((0, 2)),
@@ -198,6 +200,10 @@ class Open3dFrontend:
 
     def _record(self, frame: Frame, keyframe_from_camera: np.ndarray, tracked: bool) -> None:
         self._records.append((frame.index, frame.timestamp_s, self._keyframes[-1].id, keyframe_from_camera.copy(), tracked))
+
+    def request_keyframe(self) -> None:
+        """Make the next successfully registered frame a keyframe."""
+        self._keyframe_requested = True
 
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         """Keyframe id -> ``world_from_camera`` (4, 4) after the latest optimisation."""

@@ -92,6 +92,7 @@ class FrameToFrameOdometry:
         self._keyframe_poses: dict[int, np.ndarray] = {}
         self._keyframe_frame_indices: dict[int, int] = {}
         self._keyframe_timestamps: dict[int, float] = {}
+        self._keyframe_requested = False
         self._seconds = 0.0
 
     def track(self, frame: Frame) -> TrackResult:
@@ -119,7 +120,8 @@ class FrameToFrameOdometry:
         self._timestamps.append(frame.timestamp_s)
         self._tracked.append(success)
         keyframe = None
-        if self._is_new_keyframe(world_from_camera):
+        if self._is_new_keyframe(world_from_camera) or (success and self._keyframe_requested):
+            self._keyframe_requested = False
             keyframe_id = len(self._keyframe_poses)
             self._keyframe_poses[keyframe_id] = world_from_camera
             self._keyframe_frame_indices[keyframe_id] = frame.index
@@ -139,6 +141,10 @@ class FrameToFrameOdometry:
         rotation_deg = np.rad2deg(np.arccos(np.clip((np.trace(last_from_current[:3, :3]) - 1) / 2, -1.0, 1.0)))
         return bool(np.linalg.norm(last_from_current[:3, 3]) > self.keyframe_translation_m
                     or rotation_deg > self.keyframe_rotation_deg)
+
+    def request_keyframe(self) -> None:
+        """Make the next successfully registered frame a keyframe."""
+        self._keyframe_requested = True
 
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         return dict(self._keyframe_poses)

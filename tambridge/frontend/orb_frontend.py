@@ -118,6 +118,7 @@ class OrbFrontend:
         self._motion = np.eye(4)  # current_from_previous camera motion: the constant-velocity prior
         self._reference: Keyframe | None = None
         self._frames_since_keyframe = 0
+        self._keyframe_requested = False
         self._lost_streak = 0
         self._segment = -1
         self._keyframes_since_loop = 1 << 30
@@ -351,7 +352,8 @@ class OrbFrontend:
         c1b = self._frames_since_keyframe >= config.keyframe_min_frames
         c1c = inliers < 0.25 * reference_tracked or need_close
         c2 = (inliers < ratio * reference_tracked or need_close) and inliers > 15
-        return (c1b or c1c) and c2
+        # A keyframe asked for by the mapper (request_keyframe) needs c2's inlier floor only.
+        return ((c1b or c1c) and c2) or (self._keyframe_requested and inliers > 15)
 
     def _insert_keyframe(self, frame: Frame, features: FrameFeatures, fix: PoseFix, run_mapping: bool = True) -> Keyframe:
         """Make the frame a keyframe with its tracked points and new points from depth, then hand it to local
@@ -374,6 +376,7 @@ class OrbFrontend:
         self.map.update_covisibility(keyframe, self.config.covisibility_min_shared)
         self._reference = keyframe
         self._frames_since_keyframe = 0
+        self._keyframe_requested = False
         if not self.config.mapping_thread:
             self._map_keyframe(keyframe, run_mapping)
         elif run_mapping:
@@ -475,6 +478,10 @@ class OrbFrontend:
                                   reference.camera_from_world @ inverse(camera_from_world), tracked)
         self._records.append(record)
         self._last = record
+
+    def request_keyframe(self) -> None:
+        """Make the next frame a keyframe if it is tracked (by more than 15 inliers, as every keyframe)."""
+        self._keyframe_requested = True
 
     # ------------------------------------------------------------------ results
     def keyframe_poses(self) -> dict[int, np.ndarray]:

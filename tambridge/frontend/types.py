@@ -242,6 +242,10 @@ class Frontend(Protocol):
 
     def keyframe_poses(self) -> dict[int, np.ndarray]: ...
 
+    def request_keyframe(self) -> None:
+        """Make the next tracked frame a keyframe whatever the frontend's own rule says (the mapper asks where its
+        map lacks coverage)."""
+
     def finish(self) -> FrontendResult: ...
 
     def state_dict(self) -> dict: ...

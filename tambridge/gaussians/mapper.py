@@ -295,6 +295,18 @@ class GaussianMap:
         self.add(anchor_id, points, colours, points[:, 2] / focal)
         return int(points.shape[0])
 
+    def unexplained_fraction(self, camera: Camera, world_from_camera: np.ndarray, depth_m: torch.Tensor) -> float:
+        """Share of the valid pixels of ``depth_m`` (H, W, at ``camera``'s size) that :meth:`densify` would fill
+        at this pose (1 with an empty map, 0 without valid depth): how much of the view the map lacks."""
+        valid = int((depth_m > 0).sum())
+        if valid == 0:
+            return 0.0
+        if not len(self):
+            return 1.0
+        mask = densify_mask(depth_m, self.render(camera, world_from_camera), self.config.densify_silhouette,
+                            self.config.densify_depth_factor)
+        return int(mask.sum()) / valid
+
     def prune(self, camera: Camera, world_from_camera: np.ndarray) -> int:
         """Remove Gaussians of opacity below ``tau`` and those bigger than ``prune_radius_px`` pixels in this view.
 
