@@ -85,8 +85,8 @@ def track_sequence(
     is not counted as tracking. ``on_frame(result, frame)`` is called after every frame (the live view, the
     mapper's coverage check).
     ``checkpoints`` is told of every keyframe once the frame is mapped (``start_frame > 0``: a resumed run).
-    ``prefetch``: frame i+1 is read, and for the ORB frontend its features extracted, in a worker thread while
-    frame i is tracked (:class:`FramePrefetcher`), with the results of reading and tracking one frame after the
+    ``prefetch``: frame i+2 is read in one worker thread and frame i+1's ORB features are extracted in another
+    while frame i is tracked (:class:`FramePrefetcher`), with the results of reading and tracking one frame after the
     other. Stage "frame_reading" is the time spent waiting for the next frame (reading it, or with ``prefetch``
     what its reading and extraction did not hide behind tracking); "tracking" is the rest of the frontend's time.
     """

@@ -38,10 +38,12 @@ class FrontendConfig:
     """
 
     kind: str = "orb"
-    # Read frame i+1 (and extract its ORB features) in a worker thread while frame i is tracked; same results.
-    # It needs a free core: on 7-Scenes (700 frames, 2 cores) with the machine otherwise nearly idle (load 1-1.5)
-    # end to end 23.9 -> 31.5 frames/s with the mapping thread, 20.0 -> 21.7 inline; with the cores busy with
-    # other work (load 3-5) -9 to +7 % with the mapping thread, -4 to 0 % inline (the threads also share the GIL).
+    # Read frame i+2 and extract frame i+1's ORB features in two worker threads while frame i is tracked; same
+    # results. It needs a free core: on 7-Scenes (700 frames, 2 cores) with the machine otherwise nearly idle (load
+    # 1-1.5) end to end 23.9 -> 31.5 frames/s with the mapping thread, 20.0 -> 21.7 inline (one worker, colour as
+    # recorded); with the cores busy with other work (load 3-5) -9 to +7 % with the mapping thread, -4 to 0 % inline
+    # (the threads also share the GIL). Reading registered 7-Scenes (colour resampled, ~10 ms more per frame), the
+    # second worker took idle runs from 22.0-24.1 to 25.6-26.6 frames/s.
     prefetch: bool = True
     orb: OrbFrontendConfig = dataclasses.field(default_factory=OrbFrontendConfig)
     open3d: Open3dFrontendConfig = dataclasses.field(default_factory=Open3dFrontendConfig)
