@@ -50,8 +50,8 @@ class OrbFrontendConfig:
     close_depth_m: float = 3.2
     # RGB-D BA: each observation with depth adds an inverse-depth residual with sigma_z = k z^2 (k below).
     # On: with 7-Scenes read registered (configs/cameras/7scenes_kinect.yaml) it brings the 700-frame ATE from
-    # 5.36 to 3.91 cm (k = 0.005: 3.69 cm) and the depth misalignment of revisits from 15.3 to 13.3 mm (11.3; the
-    # ground truth's poses: 11.8); on TUM fr1/xyz 0.61 against 0.59 cm off (k = 0.005: 0.73, fr1's depth has a
+    # 5.36 to 3.91 cm (k = 0.005: 3.69 cm) and the depth misalignment of revisits (benchmarks/revisit_consistency.py)
+    # from 15.2 to 13.2 mm (11.25; the ground truth's poses: 11.8); on TUM fr1/xyz 0.61 against 0.59 cm off (k = 0.005: 0.73, fr1's depth has a
     # scale error); on clean synthetic depth 1.0 against 7.9 cm at 160x120 with k = 0.003, the sensor's own noise.
     # With colour not registered to depth it costs accuracy (7-Scenes read as recorded: 4.0 against 3.1 cm), as
     # the depth then belongs to another surface than the corner. Depth always seeds new points.
