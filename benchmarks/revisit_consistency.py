@@ -27,6 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from tambridge.camera import Camera  # noqa: E402
 from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.geometry import transform_points  # noqa: E402
 from tambridge.io.tum import RgbdSequence, open_sequence  # noqa: E402
 from tambridge.trajectory import read_tum_trajectory  # noqa: E402
 
@@ -52,7 +53,7 @@ def depth_disagreement(first_depth_m: np.ndarray, second_depth_m: np.ndarray, ca
     rows, columns = rows[::4], columns[::4]
     depth = first_depth_m[rows, columns]
     points = np.stack([(columns - camera.cx) * depth / camera.fx, (rows - camera.cy) * depth / camera.fy, depth], 1)
-    moved = points @ second_from_first[:3, :3].T + second_from_first[:3, 3]
+    moved = transform_points(second_from_first, points)
     in_front = moved[:, 2] > 0.1
     moved = moved[in_front]
     u = np.round(camera.fx * moved[:, 0] / moved[:, 2] + camera.cx).astype(int)

@@ -28,9 +28,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.export.atomic import atomic_write_text  # noqa: E402
-from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.io.tum import open_sequence  # noqa: E402
 from tambridge.trajectory import read_tum_trajectory  # noqa: E402
 

@@ -41,6 +41,10 @@ class FramePrefetcher(Generic[Prepared]):
     def _prepared(self, frame: Frame) -> tuple[Frame, Prepared | None]:
         return frame, None if self.prepare is None else self.prepare(frame)
 
+    def _prepared_read(self, read: concurrent.futures.Future) -> tuple[Frame, Prepared | None]:
+        """The preparer thread's task: wait for the reader's frame, then prepare it."""
+        return self._prepared(read.result())
+
     def __iter__(self) -> Iterator[tuple[Frame, Prepared | None]]:
         indices = range(self.start, len(self.sequence))
         if not self._executors:
@@ -48,14 +52,14 @@ class FramePrefetcher(Generic[Prepared]):
             return
         reader, preparer = self._executors
         reads = {index: reader.submit(self.sequence.__getitem__, index) for index in indices[:2]}
-        pending = preparer.submit(lambda read: self._prepared(read.result()), reads.pop(indices[0])) if indices else None
+        pending = preparer.submit(self._prepared_read, reads.pop(indices[0])) if indices else None
         for index in indices:
             current = pending
             # Queued before the caller gets frame i: i+2 is read and i+1 prepared while the caller tracks i.
             if index + 2 < len(self.sequence):
                 reads[index + 2] = reader.submit(self.sequence.__getitem__, index + 2)
             if index + 1 < len(self.sequence):
-                pending = preparer.submit(lambda read: self._prepared(read.result()), reads.pop(index + 1))
+                pending = preparer.submit(self._prepared_read, reads.pop(index + 1))
             yield current.result()
 
     def close(self) -> None:

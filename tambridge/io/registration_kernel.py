@@ -20,7 +20,8 @@ def resample_colour(
 
     ``lookup_depth_m`` (H, W) > 0; ``rotated_rays`` (H, W, 3): depth-camera rays in the colour frame; the point is
     ``ray * z + translation_m``; ``intrinsics`` = (fx, fy, cx, cy) and ``distortion`` = (k1, k2, p1, p2, k3) of the
-    colour camera. Same arithmetic as ``colour_maps`` + ``bilinear_or_black`` (float32, round half up).
+    colour camera. The arithmetic of ``colour_maps`` + ``bilinear_or_black`` (float32, round half up), compiled with
+fastmath (2x faster): reordered float operations may move a channel by one grey level (tests/test_registration.py).
     """
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     k1, k2, p1, p2, k3 = distortion[0], distortion[1], distortion[2], distortion[3], distortion[4]
