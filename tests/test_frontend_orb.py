@@ -52,6 +52,11 @@ def test_keyframe_events_are_consistent(tracked):
         assert event.points_world_m.shape == (m, 3) and event.keypoints_px.shape == (m, 2)
         assert 0 <= event.shared_with_previous <= event.previous_total
         assert event.shared_with_previous > 0
+        # No point lifted from the keyframe's own keypoints: those reproject exactly at its pose, and a refinement
+        # over them could not move it (the Fusion Bridge's reprojection term).
+        points_camera = (event.points_world_m - event.world_from_camera[:3, 3]) @ event.world_from_camera[:3, :3]
+        pixels = points_camera[:, :2] / points_camera[:, 2:] * frontend.camera.fx + [frontend.camera.cx, frontend.camera.cy]
+        assert m > 0 and np.mean(np.linalg.norm(pixels - event.keypoints_px, axis=1) < 1e-6) < 0.05
     # The matched map points project near their keypoints at the keyframe's pose.
     event = events[-1]
     pose = frontend.keyframe_poses()[event.keyframe_id]

@@ -449,7 +449,10 @@ class OrbFrontend:
             raise RuntimeError("the ORB frontend's mapping thread failed") from self._worker_error
 
     def _keyframe_event(self, keyframe: Keyframe) -> KeyframeEvent:
-        """What the Fusion Bridge gets: the keyframe's matched map points and the view-selection counts."""
+        """What the Fusion Bridge gets: the view-selection counts over all the keyframe's map points, and for the
+        reprojection term only the points that earlier keyframes made. A point lifted from this keyframe's own
+        keypoint sits exactly on its ray: its reprojection error is zero at the frontend pose and its gradient
+        undefined there, and with hundreds of them the refinement could not move the pose at all."""
         good = self.map.points.good(keyframe.point_ids)
         ids = keyframe.point_ids[good]
         shared, previous_total = 0, 0
@@ -457,14 +460,15 @@ class OrbFrontend:
             previous_ids = self.map.good_point_ids(self.map.keyframes[keyframe.id - 1])
             shared = int(np.intersect1d(ids, previous_ids).size)
             previous_total = int(previous_ids.size)
+        made_earlier = self.map.points.first_keyframe[ids] != keyframe.id
         return KeyframeEvent(
             keyframe_id=keyframe.id,
             frame_index=keyframe.frame_index,
             timestamp_s=keyframe.timestamp_s,
             world_from_camera=keyframe.world_from_camera.copy(),
-            points_world_m=self.map.points.positions_m[ids].copy(),
-            keypoints_px=keyframe.features.keypoints_px[good].copy(),
-            map_point_ids=ids.astype(np.int64),
+            points_world_m=self.map.points.positions_m[ids[made_earlier]].copy(),
+            keypoints_px=keyframe.features.keypoints_px[good][made_earlier].copy(),
+            map_point_ids=ids[made_earlier].astype(np.int64),
             shared_with_previous=shared,
             previous_total=previous_total,
         )

@@ -168,7 +168,8 @@ class KeyframeEvent:
     """A new keyframe, as the Fusion Bridge needs it.
 
     ``points_world_m`` (M, 3) are the map points matched in this keyframe at ``keypoints_px`` (M, 2), with
-    ``map_point_ids`` (M,) int64. ``shared_with_previous`` is M(i-1, i), the map points this keyframe shares
+    ``map_point_ids`` (M,) int64, leaving out the points lifted from this keyframe's own keypoints (they
+    reproject exactly at its pose and say nothing about it). ``shared_with_previous`` is M(i-1, i), the map points this keyframe shares
     with the previous keyframe; ``previous_total`` is T(i-1, i), the matched map points of the previous
     keyframe (paper eq. 3: selected if beta <= M < alpha * T). ``world_from_camera`` and the points are as at
     insertion (before local BA when the ORB frontend maps in its background thread); local BA and loop closure
