@@ -52,8 +52,8 @@ def test_fill_missing_depth_takes_the_farthest_valid_depth_of_the_block():
     depth_m[16:, 16:] = 2.0
     filled = fill_missing_depth(depth_m, block_px=16)
     assert filled[5, 5] == 3.0 and filled[2, 3] == 3.0 and filled[0, 0] == 1.0
-    # Blocks with no valid depth at all take the median of the frame's valid depth.
-    assert filled[0, 20] == np.median(depth_m[depth_m > 0]) and filled[20, 0] == filled[0, 20]
+    # Blocks with no valid depth at all take the median of the other blocks' largest depths (3 and 2).
+    assert filled[0, 20] == 2.5 and filled[20, 0] == 2.5
 
 
 def test_reader_puts_colour_in_the_depth_camera(unregistered_dir):
