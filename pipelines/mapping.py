@@ -60,17 +60,28 @@ class MappingView:
     unexplained: float = 0.0
 
 
+def scaled_size(depth_m: np.ndarray, scale: float) -> tuple[int, int]:
+    """(width, height) of a frame whose (H, W) depth is ``depth_m``, at ``scale``."""
+    height, width = depth_m.shape
+    return int(round(width * scale)), int(round(height * scale))
+
+
+def resize_depth(depth_m: np.ndarray, scale: float) -> torch.Tensor:
+    """(H, W) float32 depth in metres at ``scale``, nearest neighbour: blending across an edge invents surfaces."""
+    size = scaled_size(depth_m, scale)
+    if size != depth_m.shape[::-1]:
+        depth_m = cv2.resize(depth_m, size, interpolation=cv2.INTER_NEAREST)
+    return torch.from_numpy(np.ascontiguousarray(depth_m))
+
+
 def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device("cpu"),
                  valid_region: tuple[int, int, int, int] | None = None) -> ViewImages:
-    """A frame as mapper images at ``scale`` on ``device``: area-averaged colour, nearest-neighbour depth (no
-    invented surfaces). ``valid_region`` (top, bottom, left, right at full resolution, as
-    :attr:`RgbdSequence.valid_region`) marks where the colour has data; None or the whole frame: everywhere."""
+    """A frame as mapper images at ``scale`` on ``device``: area-averaged colour, depth by :func:`resize_depth`.
+    ``valid_region`` (top, bottom, left, right at full resolution, as :attr:`RgbdSequence.valid_region`) marks
+    where the colour has data; None or the whole frame: everywhere."""
     height, width = frame.depth_m.shape
-    size = (int(round(width * scale)), int(round(height * scale)))
-    rgb, depth_m = frame.rgb, frame.depth_m
-    if size != (width, height):
-        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
-        depth_m = cv2.resize(depth_m, size, interpolation=cv2.INTER_NEAREST)
+    size = scaled_size(frame.depth_m, scale)
+    rgb = frame.rgb if size == (width, height) else cv2.resize(frame.rgb, size, interpolation=cv2.INTER_AREA)
     colour_valid = None
     if valid_region is not None and tuple(valid_region) != (0, height, 0, width):
         top, bottom, left, right = valid_region
@@ -78,8 +89,7 @@ def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device
         colour_valid = torch.zeros((size[1], size[0]), dtype=torch.bool)
         colour_valid[int(np.ceil(top * scale)):int(np.floor(bottom * scale)),
                      int(np.ceil(left * scale)):int(np.floor(right * scale))] = True
-    return ViewImages(torch.from_numpy(rgb.astype(np.float32) / 255.0),
-                      torch.from_numpy(np.ascontiguousarray(depth_m)), colour_valid).to(device)
+    return ViewImages(torch.from_numpy(rgb.astype(np.float32) / 255.0), resize_depth(frame.depth_m, scale), colour_valid).to(device)
 
 
 class MappingStage:
@@ -208,7 +218,8 @@ class MappingStage:
         if not threshold or not self.views:
             return False
         with self.run_log.stage("coverage"):
-            depth_m = resize_frame(frame, self.config.mapper.resolution_scale, self.device).depth_m
+            # Depth only: the check never looks at colour, and it runs every coverage_check_every-th frame.
+            depth_m = resize_depth(frame.depth_m, self.config.mapper.resolution_scale).to(self.device)
             fraction = self.map.unexplained_fraction(self.camera, world_from_camera, depth_m)
         floor = self.anchor_view(frame.index).unexplained
         logger.debug("frame %d: %.1f %% of its depth unexplained by the map (%.1f %% at its view)", frame.index,

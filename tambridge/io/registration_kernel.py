@@ -21,7 +21,8 @@ def resample_colour(
     ``lookup_depth_m`` (H, W) > 0; ``rotated_rays`` (H, W, 3): depth-camera rays in the colour frame; the point is
     ``ray * z + translation_m``; ``intrinsics`` = (fx, fy, cx, cy) and ``distortion`` = (k1, k2, p1, p2, k3) of the
     colour camera. The arithmetic of ``colour_maps`` + ``bilinear_or_black`` (float32, round half up), compiled with
-fastmath (2x faster): reordered float operations may move a channel by one grey level (tests/test_registration.py).
+    fastmath (2x faster) and with the bilinear weights taken once per pixel: reordered float operations may move a
+    channel by one grey level (tests/test_registration.py).
     """
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     tx, ty, tz = translation_m[0], translation_m[1], translation_m[2]
