@@ -127,9 +127,11 @@ class MapperConfig:
     # Oversized Gaussians (2D radius in the mapped view, pixels of the mapping resolution) are pruned.
     prune_radius_px: float = 20.0
     backend: str = "auto"
-    # numba threads of the CPU rasteriser while mapping (0: all cores). On the 2-core machine, with other
-    # processes running, one thread was fastest at every mapping resolution (OpenMP threads spin-wait).
-    kernel_threads: int = 1
+    # numba threads of the CPU rasteriser while mapping and evaluating (0: all cores). Mapping runs inline with
+    # tracking, so without them one of two cores idles: on the idle 2-core machine (7-Scenes, 150 frames, default
+    # preset, two runs each) 2 threads gave 3.66/3.93 frames/s end to end against 3.00/2.94 with 1 (mapping 24 s
+    # against 32 s), the same renders. With other processes on the cores 1 is faster (OpenMP threads spin-wait).
+    kernel_threads: int = 2
 
 
 @dataclasses.dataclass
