@@ -1,0 +1,145 @@
+"""How far independent trajectory estimates lie from each other, beside how far each lies from the ground truth.
+
+    python benchmarks/run_all.py --data ../shared/data                 # first: the runs this reads
+    python benchmarks/reference_agreement.py                           # 7-Scenes redkitchen 0-699
+    python benchmarks/reference_agreement.py --focal-lengths 570,585,600,615,630   # + ORB tracking at other fx
+
+7-Scenes' ground truth is KinectFusion's trajectory (depth-only ICP against a TSDF), a pseudo ground truth: Brachmann
+et al. (ICCV 2021, "On the limits of pseudo ground truth in visual camera re-localisation") showed that on 7-Scenes
+the ranking of methods changes when the reference is SfM instead, and that depth-based methods are favoured by the
+depth-based reference. This measures that here. Every estimate is taken at the frames COLMAP registered (every 5th)
+and Sim(3)-aligned, since COLMAP's scale is free. If two estimates that share no algorithm (tambridge's RGB-D ORB
+with BA, and COLMAP's SIFT incremental SfM on colour alone) agree far better than either agrees with the ground
+truth, and their errors against it point the same way, the remaining ATE is a property of the reference (or of the
+camera model every method shares), not of the tracker.
+
+``--focal-lengths`` re-runs tambridge's ORB tracking (no mapping) with the depth camera's fx = fy set to each value
+and reports its SE(3) ATE: how much the published 585 px, which no calibration of this Kinect confirms, moves the
+figure. Prints tables and writes benchmarks/results/reference_agreement.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.sequences import camera_file_for  # noqa: E402
+from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
+from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.trajectory import Trajectory, read_tum_trajectory  # noqa: E402
+
+RUNS = ROOT / "benchmarks" / "results" / "runs"
+DEFAULT_SEQUENCE = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699"
+# run_all's output folders (under RUNS, prefixed with the sequence name) of the estimates compared.
+ESTIMATES = {
+    "tambridge ORB": "tambridge_default",
+    "tambridge Open3D frontend": "tambridge_open3d_frontend",
+    "COLMAP": "COLMAP",
+}
+MONOCULAR = {"COLMAP"}
+
+
+def at_times(trajectory: Trajectory, timestamps_s: np.ndarray) -> Trajectory:
+    """The poses of ``trajectory`` nearest to each of ``timestamps_s`` (N,)."""
+    rows = [int(np.argmin(np.abs(trajectory.timestamps_s - stamp))) for stamp in timestamps_s]
+    return Trajectory(trajectory.timestamps_s[rows], trajectory.world_from_camera[rows])
+
+
+def offsets_from_reference_m(estimate: Trajectory, reference: Trajectory) -> np.ndarray:
+    """(N, 3) positions of ``estimate`` minus ``reference``'s, after a Sim(3) alignment onto ``reference``."""
+    errors = evaluate_trajectory(estimate, reference, align="sim3")
+    return errors.aligned_est.world_from_camera[:, :3, 3] - errors.ref.world_from_camera[:, :3, 3]
+
+
+def agreement(trajectories: dict[str, Trajectory], ground_truth: Trajectory) -> dict:
+    """Pairwise Sim(3) ATE (cm) among the estimates and the ground truth, and how alike their errors are.
+
+    ``trajectories`` are taken at the same frames; those in ``MONOCULAR`` are the ones scaled in each pair.
+    ``error_correlation`` [a][b] is the correlation of a's and b's
+    position offsets from the ground truth (1: they miss it the same way).
+    """
+    named = {**trajectories, "ground truth": ground_truth}
+
+    def distance_cm(a: str, b: str) -> float:
+        # The trajectory without a metric scale is the one aligned, so that the figure is in metres.
+        estimate, reference = (b, a) if b in MONOCULAR else (a, b)
+        return 100.0 * evaluate_trajectory(named[estimate], named[reference], align="sim3").ate_rmse_m
+
+    ate_cm = {a: {b: (0.0 if a == b else distance_cm(a, b)) for b in named} for a in named}
+    offsets = {name: offsets_from_reference_m(trajectory, ground_truth) for name, trajectory in trajectories.items()}
+    correlation = {a: {b: float(np.corrcoef(offsets[a].ravel(), offsets[b].ravel())[0, 1]) for b in offsets}
+                   for a in offsets}
+    return {"ate_cm": ate_cm, "error_correlation": correlation}
+
+
+def ate_at_focal_length(sequence: Path, camera_file: Path, focal_length_px: float, work: Path) -> dict:
+    """SE(3) ATE (cm) and RPE of ORB tracking alone with the depth camera's fx = fy = ``focal_length_px``."""
+    camera = yaml.safe_load(camera_file.read_text())
+    camera["fx"] = camera["fy"] = float(focal_length_px)
+    moved_camera = work / f"camera_fx{focal_length_px:g}.yaml"
+    moved_camera.write_text(yaml.safe_dump(camera))
+    out = work / f"fx{focal_length_px:g}"
+    subprocess.run([sys.executable, str(ROOT / "cli.py"), "reconstruct", str(sequence), "-o", str(out), "--camera",
+                    str(moved_camera), "--quiet", "--set", "mapper.enabled=false", "--set", "mesh.enabled=false"],
+                   cwd=ROOT, check=True)
+    trajectory = read_tum_trajectory(out / "trajectory.txt")
+    ground_truth = read_tum_trajectory(sequence / "groundtruth.txt")
+    se3 = evaluate_trajectory(trajectory, ground_truth, align="se3")
+    sim3 = evaluate_trajectory(trajectory, ground_truth, align="sim3")
+    return {"fx_px": focal_length_px, "ate_se3_cm": 100.0 * se3.ate_rmse_m, "ate_sim3_cm": 100.0 * sim3.ate_rmse_m,
+            "sim3_scale": sim3.scale, "rpe_cm": 100.0 * se3.rpe_trans_rmse_m}
+
+
+def print_matrix(title: str, matrix: dict, format_spec: str) -> None:
+    names = list(matrix)
+    columns = list(next(iter(matrix.values())))
+    print(f"\n{title}\n| | " + " | ".join(columns) + " |\n|---|" + "---|" * len(columns))
+    for name in names:
+        print(f"| {name} | " + " | ".join(format(matrix[name][column], format_spec) for column in columns) + " |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sequence", type=Path, default=DEFAULT_SEQUENCE)
+    parser.add_argument("--runs", type=Path, default=RUNS, help="run_all's output folders")
+    parser.add_argument("--focal-lengths", default="", help="comma-separated fx values (px) to track with")
+    arguments = parser.parse_args()
+    sequence = arguments.sequence
+    ground_truth = read_tum_trajectory(sequence / "groundtruth.txt")
+    paths = {name: arguments.runs / f"{sequence.name}__{folder}" / "trajectory.txt" for name, folder in ESTIMATES.items()}
+    missing = [str(path) for path in paths.values() if not path.is_file()]
+    if missing:
+        parser.error(f"missing {', '.join(missing)}: run 'python benchmarks/run_all.py --data {sequence.parent}' first")
+    trajectories = {name: read_tum_trajectory(path) for name, path in paths.items()}
+    frames_s = trajectories["COLMAP"].timestamps_s
+    trajectories = {name: at_times(trajectory, frames_s) for name, trajectory in trajectories.items()}
+    result = {"sequence": str(sequence), "frames": len(frames_s), **agreement(trajectories, at_times(ground_truth, frames_s))}
+    print(f"{sequence.name}: {len(frames_s)} frames (those COLMAP registered), Sim(3)-aligned")
+    print_matrix("ATE RMSE between trajectories (cm), the row's aligned onto the column's", result["ate_cm"], ".2f")
+    print_matrix("correlation of position errors against the ground truth", result["error_correlation"], ".3f")
+    if arguments.focal_lengths:
+        camera_file = camera_file_for(sequence)
+        if camera_file is None:
+            parser.error(f"--focal-lengths needs a camera YAML for {sequence.name}: add it to benchmarks/sequences.py")
+        with tempfile.TemporaryDirectory(prefix="tambridge-fx-") as work:
+            rows = [ate_at_focal_length(sequence, camera_file, float(value), Path(work))
+                    for value in arguments.focal_lengths.split(",")]
+        result["focal_length_sweep"] = rows
+        print("\nORB tracking, 700 frames, depth camera fx = fy varied\n| fx px | ATE SE(3) cm | ATE Sim(3) cm | Sim(3) scale | RPE cm |\n|---|---|---|---|---|")
+        for row in rows:
+            print(f"| {row['fx_px']:g} | {row['ate_se3_cm']:.2f} | {row['ate_sim3_cm']:.2f} | {row['sim3_scale']:.4f} | {row['rpe_cm']:.3f} |")
+    atomic_write_text(ROOT / "benchmarks" / "results" / "reference_agreement.json", json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
