@@ -1,6 +1,9 @@
 """Online Gaussian map: anchoring, Adam, densification, pruning, and mapping a synthetic sequence at known poses."""
 
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -340,3 +343,13 @@ def test_pixels_without_colour_data_pull_on_nothing():
         torch.testing.assert_close(black[name], white[name], atol=1e-6, rtol=0)
     # Without the mask the border's colour does matter (the test can fail).
     assert (stepped(0.0, None)["rgb"] - stepped(1.0, None)["rgb"]).abs().max() > 1e-3
+
+
+def test_more_rasteriser_threads_than_the_machine_has_run_on_what_it_has():
+    """mapper.kernel_threads defaults to 2; numba refuses a count above its pool (1 on a one-core machine)."""
+    code = ("import numba\nfrom tambridge.gaussians.mapper import compute_threads\n"
+            "with compute_threads(1, 2):\n    print(numba.get_num_threads())\n")
+    child = subprocess.run([sys.executable, "-c", code], env={**os.environ, "NUMBA_NUM_THREADS": "1"},
+                           capture_output=True, text=True, timeout=120)
+    assert child.returncode == 0, child.stderr
+    assert child.stdout.split() == ["1"]

@@ -50,10 +50,12 @@ took 1.38 s with 2 torch threads and 0.037 s with 1."""
 @contextlib.contextmanager
 def compute_threads(torch_count: int, numba_count: int) -> Iterator[None]:
     """Run a block with ``torch_count`` torch intra-op threads and ``numba_count`` numba threads (0: numba's
-    default, all cores), then restore the previous counts."""
+    default, all cores; no more than numba's pool has, which is one on a one-core machine), then restore the
+    previous counts."""
     previous = torch.get_num_threads(), numba.get_num_threads()
     torch.set_num_threads(torch_count)
-    numba.set_num_threads(numba_count if numba_count > 0 else numba.config.NUMBA_NUM_THREADS)
+    pool = numba.config.NUMBA_NUM_THREADS
+    numba.set_num_threads(min(numba_count, pool) if numba_count > 0 else pool)
     try:
         yield
     finally:
