@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.sequences import camera_file_for  # noqa: E402
+from tambridge.config import load_config  # noqa: E402
 from tambridge.export.atomic import atomic_write_text  # noqa: E402
 from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence  # noqa: E402
 
@@ -35,10 +36,16 @@ PRESETS = ("default", "fast")
 # 320x240 with 3 x 3 rays per pixel (anti-aliased, as a camera integrates over its pixels; writing it takes
 # about 5-13 min on 2 cores, once: it is kept under benchmarks/results/runs/).
 SYNTHETIC = SynthOptions(frame_count=120, width=320, height=240, seed=0, supersampling=3)
-# Mapped at half resolution (160x120); the synthetic depth is registered to colour and exact up to its 1/5000 m
-# steps, so the ORB frontend's RGB-D residuals are on, with a small depth noise.
-SYNTHETIC_SETTINGS = ["--set", "mapper.resolution_scale=0.5", "--set", "frontend.orb.depth_residuals=true",
-                      "--set", "frontend.orb.depth_noise_per_m=0.003"]
+# The synthetic depth is registered to colour and exact up to its 1/5000 m steps, so the ORB frontend's RGB-D
+# residuals are on, with a small depth noise.
+SYNTHETIC_SETTINGS = ["--set", "frontend.orb.depth_residuals=true", "--set", "frontend.orb.depth_noise_per_m=0.003"]
+
+
+def synthetic_mapping_scale(preset: str) -> list[str]:
+    """The preset's mapping resolution scale doubled: the 320x240 synthetic frames are then mapped at the image size
+    a 640x480 camera is mapped at (default 160x120, fast 80x60)."""
+    scale = load_config(ROOT / "configs" / f"{preset}.yaml").mapper.resolution_scale
+    return ["--set", f"mapper.resolution_scale={2.0 * scale:g}"]
 
 
 def run_case(sequence: Path, preset: str, bridge: bool, out: Path, max_frames: int | None, extra: list[str]) -> dict:
@@ -126,19 +133,21 @@ def main() -> None:
     arguments = parser.parse_args()
     runs = ROOT / "benchmarks" / "results" / "runs"
     kitchen = arguments.data / "7scenes_redkitchen_0-699"
-    cases = [(kitchen, arguments.max_frames or None, ["--camera", str(camera_file_for(kitchen))])]
+    # (sequence, frames, settings, whether its frames are 320x240 synthetic ones)
+    cases = [(kitchen, arguments.max_frames or None, ["--camera", str(camera_file_for(kitchen))], False)]
     if not arguments.skip_synthetic:
         synthetic = runs / "synthetic_loop_120_320x240_ss3"
         if not (synthetic / "groundtruth.txt").is_file():
             write_synthetic_sequence(synthetic, SYNTHETIC)
-        cases.append((synthetic, None, SYNTHETIC_SETTINGS))
+        cases.append((synthetic, None, SYNTHETIC_SETTINGS, True))
     rows = []
-    for sequence, max_frames, extra in cases:
+    for sequence, max_frames, extra, is_synthetic in cases:
         for preset in arguments.presets:
+            settings = extra + (synthetic_mapping_scale(preset) if is_synthetic else [])
             for bridge in (True, False):
                 out = runs / f"{sequence.name}__{preset}__bridge_{'on' if bridge else 'off'}"
                 print(f"running {preset}, bridge {'on' if bridge else 'off'} on {sequence.name} ...", flush=True)
-                rows.append(run_case(sequence, preset, bridge, out, max_frames, extra))
+                rows.append(run_case(sequence, preset, bridge, out, max_frames, settings))
     table = format_table(rows)
     gains = bridge_gains(rows)
     print(table)
