@@ -65,8 +65,8 @@ def agreement(trajectories: dict[str, Trajectory], ground_truth: Trajectory) -> 
     """Pairwise Sim(3) ATE (cm) among the estimates and the ground truth, and how alike their errors are.
 
     ``trajectories`` are taken at the same frames; those in ``MONOCULAR`` are the ones scaled in each pair.
-    ``error_correlation`` [a][b] is the correlation of a's and b's
-    position offsets from the ground truth (1: they miss it the same way).
+    ``error_correlation`` [a][b] is the correlation of a's and b's position offsets from the ground truth (1: they
+    miss it the same way).
     """
     named = {**trajectories, "ground truth": ground_truth}
 
