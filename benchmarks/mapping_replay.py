@@ -59,9 +59,7 @@ def umeyama_se3(source_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:
 
 def ground_truth_per_frame(sequence: RgbdSequence) -> np.ndarray:
     """(N, 4, 4) ground-truth ``world_from_camera`` of every frame (nearest timestamp)."""
-    truth = sequence.ground_truth
-    rows = [int(np.argmin(np.abs(truth.timestamps_s - stamp))) for stamp in sequence.timestamps_s]
-    return truth.world_from_camera[rows]
+    return sequence.ground_truth.nearest(sequence.timestamps_s).world_from_camera
 
 
 def record(sequence_dir: Path, max_frames: int, cache: Path, overrides: list[str]) -> None:

@@ -49,16 +49,10 @@ ESTIMATES = {
 MONOCULAR = {"COLMAP"}
 
 
-def at_times(trajectory: Trajectory, timestamps_s: np.ndarray) -> Trajectory:
-    """The poses of ``trajectory`` nearest to each of ``timestamps_s`` (N,)."""
-    rows = [int(np.argmin(np.abs(trajectory.timestamps_s - stamp))) for stamp in timestamps_s]
-    return Trajectory(trajectory.timestamps_s[rows], trajectory.world_from_camera[rows])
-
-
 def offsets_from_reference_m(estimate: Trajectory, reference: Trajectory) -> np.ndarray:
     """(N, 3) positions of ``estimate`` minus ``reference``'s, after a Sim(3) alignment onto ``reference``."""
     errors = evaluate_trajectory(estimate, reference, align="sim3")
-    return errors.aligned_est.world_from_camera[:, :3, 3] - errors.ref.world_from_camera[:, :3, 3]
+    return errors.aligned_est.positions_m - errors.ref.positions_m
 
 
 def agreement(trajectories: dict[str, Trajectory], ground_truth: Trajectory) -> dict:
@@ -82,7 +76,8 @@ def agreement(trajectories: dict[str, Trajectory], ground_truth: Trajectory) -> 
     return {"ate_cm": ate_cm, "error_correlation": correlation}
 
 
-def ate_at_focal_length(sequence: Path, camera_file: Path, focal_length_px: float, work: Path) -> dict:
+def ate_at_focal_length(sequence: Path, ground_truth: Trajectory, camera_file: Path, focal_length_px: float,
+                        work: Path) -> dict:
     """SE(3) ATE (cm) and RPE of ORB tracking alone with the depth camera's fx = fy = ``focal_length_px``."""
     camera = yaml.safe_load(camera_file.read_text())
     camera["fx"] = camera["fy"] = float(focal_length_px)
@@ -93,7 +88,6 @@ def ate_at_focal_length(sequence: Path, camera_file: Path, focal_length_px: floa
                     str(moved_camera), "--quiet", "--set", "mapper.enabled=false", "--set", "mesh.enabled=false"],
                    cwd=ROOT, check=True)
     trajectory = read_tum_trajectory(out / "trajectory.txt")
-    ground_truth = read_tum_trajectory(sequence / "groundtruth.txt")
     se3 = evaluate_trajectory(trajectory, ground_truth, align="se3")
     sim3 = evaluate_trajectory(trajectory, ground_truth, align="sim3")
     return {"fx_px": focal_length_px, "ate_se3_cm": 100.0 * se3.ate_rmse_m, "ate_sim3_cm": 100.0 * sim3.ate_rmse_m,
@@ -101,11 +95,10 @@ def ate_at_focal_length(sequence: Path, camera_file: Path, focal_length_px: floa
 
 
 def print_matrix(title: str, matrix: dict, format_spec: str) -> None:
-    names = list(matrix)
     columns = list(next(iter(matrix.values())))
     print(f"\n{title}\n| | " + " | ".join(columns) + " |\n|---|" + "---|" * len(columns))
-    for name in names:
-        print(f"| {name} | " + " | ".join(format(matrix[name][column], format_spec) for column in columns) + " |")
+    for name, row in matrix.items():
+        print(f"| {name} | " + " | ".join(format(row[column], format_spec) for column in columns) + " |")
 
 
 def main() -> None:
@@ -122,8 +115,8 @@ def main() -> None:
         parser.error(f"missing {', '.join(missing)}: run 'python benchmarks/run_all.py --data {sequence.parent}' first")
     trajectories = {name: read_tum_trajectory(path) for name, path in paths.items()}
     frames_s = trajectories["COLMAP"].timestamps_s
-    trajectories = {name: at_times(trajectory, frames_s) for name, trajectory in trajectories.items()}
-    result = {"sequence": str(sequence), "frames": len(frames_s), **agreement(trajectories, at_times(ground_truth, frames_s))}
+    trajectories = {name: trajectory.nearest(frames_s) for name, trajectory in trajectories.items()}
+    result = {"sequence": str(sequence), "frames": len(frames_s), **agreement(trajectories, ground_truth.nearest(frames_s))}
     print(f"{sequence.name}: {len(frames_s)} frames (those COLMAP registered), Sim(3)-aligned")
     print_matrix("ATE RMSE between trajectories (cm), the row's aligned onto the column's", result["ate_cm"], ".2f")
     print_matrix("correlation of position errors against the ground truth", result["error_correlation"], ".3f")
@@ -132,10 +125,10 @@ def main() -> None:
         if camera_file is None:
             parser.error(f"--focal-lengths needs a camera YAML for {sequence.name}: add it to benchmarks/sequences.py")
         with tempfile.TemporaryDirectory(prefix="tambridge-fx-") as work:
-            rows = [ate_at_focal_length(sequence, camera_file, float(value), Path(work))
+            rows = [ate_at_focal_length(sequence, ground_truth, camera_file, float(value), Path(work))
                     for value in arguments.focal_lengths.split(",")]
         result["focal_length_sweep"] = rows
-        print("\nORB tracking, 700 frames, depth camera fx = fy varied\n| fx px | ATE SE(3) cm | ATE Sim(3) cm | Sim(3) scale | RPE cm |\n|---|---|---|---|---|")
+        print(f"\nORB tracking, {sequence.name}, depth camera fx = fy varied\n| fx px | ATE SE(3) cm | ATE Sim(3) cm | Sim(3) scale | RPE cm |\n|---|---|---|---|---|")
         for row in rows:
             print(f"| {row['fx_px']:g} | {row['ate_se3_cm']:.2f} | {row['ate_sim3_cm']:.2f} | {row['sim3_scale']:.4f} | {row['rpe_cm']:.3f} |")
     atomic_write_text(ROOT / "benchmarks" / "results" / "reference_agreement.json", json.dumps(result, indent=2) + "\n")

@@ -35,6 +35,19 @@ class Trajectory:
         """Camera centres in the world frame, (N, 3)."""
         return self.world_from_camera[:, :3, 3]
 
+    def nearest(self, timestamps_s: np.ndarray) -> "Trajectory":
+        """The poses whose timestamps lie nearest to each of ``timestamps_s`` (M,), with their own timestamps (ties
+        go to the earlier pose)."""
+        timestamps_s = np.asarray(timestamps_s, dtype=np.float64)
+        after = np.clip(np.searchsorted(self.timestamps_s, timestamps_s), 1, max(len(self) - 1, 1))
+        before = after - 1
+        if len(self) == 1:
+            rows = np.zeros(len(timestamps_s), np.int64)
+        else:
+            later_is_nearer = self.timestamps_s[after] - timestamps_s < timestamps_s - self.timestamps_s[before]
+            rows = np.where(later_is_nearer, after, before)
+        return Trajectory(self.timestamps_s[rows], self.world_from_camera[rows])
+
     def pose_at(self, timestamp_s: float) -> np.ndarray:
         """Pose at a time inside the trajectory's span, interpolated on SE(3) between neighbours."""
         index = int(np.searchsorted(self.timestamps_s, timestamp_s))

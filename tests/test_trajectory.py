@@ -83,3 +83,17 @@ def test_malformed_trajectory_files_name_the_line(tmp_path, text, message):
     path.write_text(text)
     with pytest.raises(TrajectoryFormatError, match=message):
         read_tum_trajectory(path)
+
+
+def test_nearest_poses_match_a_search_over_every_pose():
+    rng = np.random.default_rng(11)
+    reference = Trajectory(np.sort(rng.uniform(0.0, 10.0, 60)), loop_path(60))
+    queries = np.concatenate([rng.uniform(-1.0, 11.0, 200), reference.timestamps_s[::7],
+                              # halfway between two poses: the earlier one
+                              (reference.timestamps_s[:-1:5] + reference.timestamps_s[1::5]) / 2])
+    rows = [int(np.argmin(np.abs(reference.timestamps_s - stamp))) for stamp in queries]
+    picked = reference.nearest(queries)
+    np.testing.assert_array_equal(picked.timestamps_s, reference.timestamps_s[rows])
+    np.testing.assert_array_equal(picked.world_from_camera, reference.world_from_camera[rows])
+    single = Trajectory(reference.timestamps_s[:1], reference.world_from_camera[:1])
+    assert len(single.nearest(queries[:5])) == 5
