@@ -176,7 +176,7 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
     """ATE and RPE of a TUM trajectory ESTIMATE against GROUND_TRUTH, with a plot."""
     from tambridge.evaluation.plots import plot_trajectory_errors
     from tambridge.evaluation.trajectory import evaluate_trajectory
-    from tambridge.export.atomic import atomic_write_text
+    from tambridge.files import atomic_write_text
     from tambridge.trajectory import read_tum_trajectory
 
     try:
@@ -249,7 +249,7 @@ def colmap(sequence_dir, output_dir, every, max_frames, camera_file) -> None:
 def compare(estimates, ground_truth, sim3_names, plot, json_path) -> None:
     """ATE/RPE of several TUM trajectories ESTIMATES against --gt in one table, and one plot of all."""
     from pipelines.compare import compare_files
-    from tambridge.export.atomic import atomic_write_text
+    from tambridge.files import atomic_write_text
 
     comparison = compare_files(ground_truth, estimates, sim3_names, plot)
     click.echo(comparison.table())

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.sequences import camera_file_for  # noqa: E402
-from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.files import atomic_write_text  # noqa: E402
 
 SEQUENCES = ("7scenes_redkitchen_0-699", "tum_fr1_xyz_first37")
 METHODS = {
@@ -42,10 +42,10 @@ METHODS = {
 
 
 def make_frontend(method: str, camera):
-    from tambridge.frontend.open3d_frontend import Open3dFrontend
-    from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
-    from tambridge.frontend.orb_frontend import OrbFrontend
-    from tambridge.frontend.types import OrbFrontendConfig
+    from tambridge.frontend.open3d.frontend import Open3dFrontend
+    from tambridge.frontend.open3d.odometry import FrameToFrameOdometry
+    from tambridge.frontend.orb.frontend import OrbFrontend
+    from tambridge.frontend.orb.config import OrbFrontendConfig
 
     if method == "orb":
         return OrbFrontend(camera, OrbFrontendConfig(loop_closure=False, global_ba=False))

@@ -33,7 +33,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipelines.mapping import MappingStage, evaluation_frames  # noqa: E402
+from tambridge.evaluation.mapping import evaluation_frames  # noqa: E402
+from tambridge.mapping.stage import MappingStage  # noqa: E402
 from pipelines.reconstruct import make_frontend  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
 from tambridge.geometry import transform_points  # noqa: E402
@@ -106,7 +107,7 @@ def replay(cache: Path, overrides: list[str], preset: Path | None, ground_truth_
             scores = stage.evaluate(stage.rendering_poses(trajectory), tracked_frames)
             tracked.append((event.frame_index, [round(value, 2) for value in scores.psnr_db]))
     final_poses = {key: truth[keyframe_frames[key]] if ground_truth_poses else pose for key, pose in result.keyframe_poses.items()}
-    stage.finish(final_poses, None)
+    stage.finish(final_poses)
     mapping_s = time.perf_counter() - started
     run_log.close()
     poses = stage.rendering_poses(trajectory)

@@ -27,7 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.files import atomic_write_text  # noqa: E402
 
 DEFAULT_SEQUENCE = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699"
 DEFAULT_FRAMES = (100, 300, 700)

@@ -215,7 +215,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "rasterizer.json")
     args = parser.parse_args()
 
-    from tambridge.export.atomic import atomic_write_text
+    from tambridge.files import atomic_write_text
 
     os.environ["OMP_WAIT_POLICY"] = args.omp_wait_policy.upper()  # read by the spawned processes' OpenMP runtimes
     started = datetime.datetime.now().isoformat(timespec="seconds")

@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
-from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence  # noqa: E402
 
 PRESETS = ("default", "fast")

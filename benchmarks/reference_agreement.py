@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
-from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.trajectory import Trajectory, read_tum_trajectory  # noqa: E402
 
 RUNS = ROOT / "benchmarks" / "results" / "runs"

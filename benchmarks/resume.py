@@ -28,8 +28,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tambridge.checkpoint import CheckpointError, checkpoint_path, load_checkpoint  # noqa: E402
-from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.checkpoint import checkpoint_path, load_checkpoint
+from tambridge.errors import CheckpointError  # noqa: E402
+from tambridge.files import atomic_write_text  # noqa: E402
 
 DEFAULT_SEQUENCE = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699"
 

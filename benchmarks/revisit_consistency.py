@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tambridge.camera import Camera  # noqa: E402
-from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.geometry import transform_points  # noqa: E402
 from tambridge.io.tum import RgbdSequence, open_sequence  # noqa: E402
 from tambridge.trajectory import read_tum_trajectory  # noqa: E402

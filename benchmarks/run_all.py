@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
-from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.io.tum import open_sequence  # noqa: E402
 from tambridge.trajectory import read_tum_trajectory  # noqa: E402
 
@@ -184,7 +184,7 @@ def main() -> None:
         # Checked here, before any run: a --gpu table must not quietly hold CPU runs.
         import torch
 
-        from tambridge.config import ConfigError
+        from tambridge.errors import ConfigError
         from tambridge.device import resolve_device
 
         try:

@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
-from tambridge.export.atomic import atomic_write_text  # noqa: E402
+from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.io.synthetic import blank_frames  # noqa: E402
 from tambridge.io.tum import read_file_list  # noqa: E402
 from tambridge.trajectory import Trajectory, read_tum_trajectory  # noqa: E402

@@ -16,7 +16,7 @@ from pathlib import Path
 from tambridge.evaluation.colmap import ColmapOptions, run_colmap, write_monocular_trajectory
 from tambridge.evaluation.plots import plot_trajectory_errors
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory
-from tambridge.export.atomic import atomic_write_text
+from tambridge.files import atomic_write_text
 from tambridge.io.tum import open_sequence
 from tambridge.trajectory import Trajectory
 

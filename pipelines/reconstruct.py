@@ -24,23 +24,26 @@ from tambridge.checkpoint import (
     load_checkpoint,
     sequence_fingerprint,
 )
-from tambridge.config import Config, ConfigError, to_dict, to_yaml
+from tambridge.config import Config, to_dict, to_yaml
+from tambridge.errors import ConfigError
 from tambridge.device import device_summary, resolve_device
 from tambridge.evaluation.report import RenderPair, write_report
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory
-from tambridge.export.atomic import atomic_write_text
+from tambridge.files import atomic_write_text
+from tambridge.evaluation.mapping import mapping_metrics
 from tambridge.export.mesh import fuse_tsdf_mesh, gaussian_views, sensor_views, write_mesh
-from tambridge.frontend.open3d_frontend import Open3dFrontend
-from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
-from tambridge.frontend.orb_frontend import OrbFrontend
-from tambridge.frontend.types import Frontend, FrontendResult, TrackResult
+from tambridge.export.splats import save_ply
+from tambridge.frontend.open3d.frontend import Open3dFrontend
+from tambridge.frontend.open3d.odometry import FrameToFrameOdometry
+from tambridge.frontend.orb.frontend import OrbFrontend
+from tambridge.frontend.contract import Frontend, FrontendResult, TrackResult
 from tambridge.io.prefetch import FramePrefetcher
 from tambridge.io.tum import Frame, RgbdSequence, open_sequence
 from tambridge.runlog import RunLog, peak_memory_mb
 from tambridge.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
 from tambridge.viewer import RerunViewer
 
-from pipelines.mapping import MappingStage, mapping_metrics
+from tambridge.mapping.stage import MappingStage
 
 logger = logging.getLogger("tambridge.pipelines.reconstruct")
 
@@ -203,7 +206,9 @@ def reconstruct(
         write_tum_trajectory(output_dir / "trajectory.txt", trajectory)
         write_tum_trajectory(output_dir / "keyframes.txt", keyframes)
         if mapping is not None:
-            mapping.finish(tracking.keyframe_poses, output_dir / "splats.ply")
+            mapping.finish(tracking.keyframe_poses)
+            with run_log.stage("export"):
+                save_ply(output_dir / "splats.ply", mapping.map.world_gaussians())
         if config.mesh.enabled:
             with run_log.stage("mesh"):
                 write_run_mesh(output_dir / "mesh.ply", sequence, trajectory, config, mapping)

@@ -20,13 +20,13 @@ import hashlib
 import logging
 import pickle
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Callable
 
 import numpy as np
 
-from tambridge.config import dotted_items
-from tambridge.errors import TambridgeError
-from tambridge.export.atomic import atomic_path
+from tambridge.errors import CheckpointError
+from tambridge.state import dotted_items
+from tambridge.files import atomic_path
 
 logger = logging.getLogger("tambridge.checkpoint")
 
@@ -38,8 +38,12 @@ IGNORED_CONFIG_SECTIONS = ("checkpoint",)
 """Config sections a resumed run may change: how often it checkpoints does not change its results."""
 
 
-class CheckpointError(TambridgeError):
-    """A checkpoint is missing, unreadable, of another version, or of another config or sequence."""
+@dataclasses.dataclass
+class CheckpointConfig:
+    """Checkpoints for ``reconstruct --resume``: every ``every_keyframes`` keyframes (0: never) the frontend and
+    mapping state are written atomically to ``<output>/checkpoint/``; a finished run removes them."""
+
+    every_keyframes: int = 0
 
 
 @dataclasses.dataclass
@@ -63,26 +67,6 @@ class Checkpoint:
 def checkpoint_path(output_dir: Path) -> Path:
     """Where a run into ``output_dir`` keeps its checkpoint."""
     return Path(output_dir) / CHECKPOINT_FOLDER / CHECKPOINT_NAME
-
-
-# ---- state of the stateful classes --------------------------------------------------------------------------
-
-
-def attribute_state(owner: object, transient: Iterable[str]) -> dict[str, Any]:
-    """The instance attributes of ``owner`` except the ``transient`` ones (threads, locks, what the constructor
-    rebuilds from its arguments). The values are the owner's own objects, not copies."""
-    skipped = set(transient)
-    return {name: value for name, value in vars(owner).items() if name not in skipped}
-
-
-def restore_attributes(owner: object, state: dict[str, Any]) -> None:
-    """Set the attributes saved by :func:`attribute_state` on a freshly constructed ``owner``."""
-    missing = sorted(set(state) - set(vars(owner)))
-    if missing:
-        # A checkpoint of the same version always names the same attributes; anything else is a version mismatch.
-        raise CheckpointError(f"checkpoint holds attributes {missing} that {type(owner).__name__} does not have; "
-                              f"it was written by another tambridge version: run again without --resume")
-    vars(owner).update(state)
 
 
 # ---- the sequence ---------------------------------------------------------------------------------------------

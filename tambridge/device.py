@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from tambridge.config import ConfigError
+from tambridge.errors import ConfigError
 from tambridge.gaussians.gsplat_backend import gsplat_available
 
 DEVICE_CHOICES = ("auto", "cpu", "cuda")

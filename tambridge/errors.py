@@ -17,8 +17,12 @@ class TrajectoryFormatError(TambridgeError):
     """A TUM trajectory file cannot be parsed."""
 
 
-class TrackingLostError(TambridgeError):
-    """The frontend could not track a frame and could not recover."""
+class ConfigError(TambridgeError):
+    """A preset or override names an unknown key or gives a value of the wrong type or range."""
+
+
+class CheckpointError(TambridgeError):
+    """A checkpoint is missing, unreadable, of another version, or of another config or sequence."""
 
 
 class SplatFormatError(TambridgeError):

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from tambridge.errors import TrajectoryFormatError
-from tambridge.export.atomic import atomic_write_text
+from tambridge.files import atomic_write_text
 from tambridge.geometry import interpolate_pose, pose_from_tum, tum_from_pose
 
 

@@ -8,9 +8,11 @@ import torch
 
 from tambridge.bridge.refinement import pixel_gates, refine_pose, reprojection_error_px
 from tambridge.bridge.view_selection import Selection, covisibility_selection, select_view
-from tambridge.config import BridgeConfig, MapperConfig
-from tambridge.frontend.types import KeyframeEvent
-from tambridge.gaussians.mapper import TORCH_THREADS, GaussianMap, ViewImages, compute_threads
+from tambridge.bridge.config import BridgeConfig
+from tambridge.gaussians.config import MapperConfig
+from tambridge.frontend.contract import KeyframeEvent
+from tambridge.gaussians.mapper import GaussianMap, ViewImages
+from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.geometry import exp_se3, inverse, log_se3, transform_points
 from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render
 

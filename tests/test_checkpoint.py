@@ -28,9 +28,9 @@ from tambridge.checkpoint import (
 )
 from tambridge.config import load_config, to_dict
 from tambridge.evaluation.trajectory import evaluate_trajectory
-from tambridge.frontend.open3d_frontend import Open3dFrontend
-from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
-from tambridge.frontend.orb_frontend import OrbFrontend
+from tambridge.frontend.open3d.frontend import Open3dFrontend
+from tambridge.frontend.open3d.odometry import FrameToFrameOdometry
+from tambridge.frontend.orb.frontend import OrbFrontend
 from tambridge.io.tum import open_sequence
 
 ROOT = Path(__file__).resolve().parents[1]

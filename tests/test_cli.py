@@ -10,7 +10,8 @@ import yaml
 from click.testing import CliRunner
 
 from cli import main
-from tambridge.config import ConfigError, load_config
+from tambridge.config import load_config
+from tambridge.errors import ConfigError
 from tambridge.io.tum import open_sequence
 from tambridge.trajectory import read_tum_trajectory
 
@@ -113,12 +114,12 @@ def test_download_fetches_and_unpacks_from_a_local_mirror(synthetic_sequence_dir
 def test_atomic_writes_leave_no_temp_files_and_normal_permissions(tmp_path):
     import os
 
-    from tambridge.export.atomic import atomic_write_text
+    from tambridge.files import atomic_write_text
 
     target = tmp_path / "result.txt"
     atomic_write_text(target, "whole")
     with pytest.raises(RuntimeError):
-        from tambridge.export.atomic import atomic_path
+        from tambridge.files import atomic_path
 
         with atomic_path(tmp_path / "partial.txt") as temp_path:
             temp_path.write_text("half")

@@ -2,7 +2,8 @@
 
 import pytest
 
-from tambridge.config import ConfigError, load_config, to_yaml
+from tambridge.config import load_config, to_yaml
+from tambridge.errors import ConfigError
 
 
 def test_nested_frontend_settings_reachable_from_overrides():

@@ -17,14 +17,15 @@ from click.testing import CliRunner
 
 import tambridge.device
 from cli import main
-from pipelines.mapping import MappingStage
+from tambridge.mapping.stage import MappingStage
 from pipelines.reconstruct import reconstruct
 from tambridge.camera import Camera
-from tambridge.config import Config, ConfigError, load_config
+from tambridge.config import Config, load_config
+from tambridge.errors import ConfigError
 from tambridge.device import resolve_device
-from tambridge.frontend.types import KeyframeEvent
+from tambridge.frontend.contract import KeyframeEvent
 from tambridge.gaussians.gsplat_backend import gsplat_available
-from tambridge.gaussians.mapper import TORCH_THREADS, compute_threads
+from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.gaussians.model import GaussianTensors
 from tambridge.gaussians.rasterizer import render
 from tambridge.io.tum import open_sequence

@@ -6,7 +6,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from tambridge.frontend.bundle_adjustment import (
+from tambridge.frontend.orb.bundle_adjustment import (
     BundleOptions,
     BundleProblem,
     _linearise_kernel,
@@ -14,7 +14,7 @@ from tambridge.frontend.bundle_adjustment import (
     linearise_reference,
     solve_bundle_adjustment,
 )
-from tambridge.frontend.reprojection import chi2_thresholds, project_rgbd, rgbd_observations, row_weights
+from tambridge.frontend.orb.reprojection import chi2_thresholds, project_rgbd, rgbd_observations, row_weights
 from tambridge.geometry import exp_se3, inverse, look_at, transform_points
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])

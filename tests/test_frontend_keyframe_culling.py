@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from tambridge.evaluation.trajectory import ate_rmse_m
-from tambridge.frontend.local_mapping import finer_observer_counts
-from tambridge.frontend.orb_frontend import OrbFrontend
-from tambridge.frontend.types import OrbFrontendConfig
-from tambridge.frontend.vocabulary import KeyframeDatabase
+from tambridge.frontend.orb.local_mapping import finer_observer_counts
+from tambridge.frontend.orb.frontend import OrbFrontend
+from tambridge.frontend.orb.config import OrbFrontendConfig
+from tambridge.frontend.orb.vocabulary import KeyframeDatabase
 from tambridge.geometry import inverse, look_at
 from tambridge.io.synthetic import default_camera, make_room_scene, render
 from tambridge.io.tum import Frame

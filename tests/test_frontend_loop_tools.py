@@ -2,9 +2,10 @@
 
 import numpy as np
 
-from tambridge.frontend.loop_closing import LoopConsistency
+from tambridge.frontend.orb.loop_closing import LoopConsistency
 from tambridge.frontend.pose_graph import PoseEdge, optimise_pose_graph
-from tambridge.frontend.vocabulary import DEFAULT_VOCABULARY_PATH, KeyframeDatabase, Vocabulary, bow_score, train_vocabulary
+from tambridge.frontend.orb.vocabulary import DEFAULT_VOCABULARY_PATH, KeyframeDatabase, Vocabulary, bow_score
+from tambridge.frontend.orb.vocabulary_training import train_vocabulary
 from tambridge.geometry import exp_se3, inverse
 
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from tambridge.camera import Camera
-from tambridge.frontend.matching import (
+from tambridge.frontend.orb.matching import (
     build_keypoint_grid,
     distinctive_indices,
     distinctive_indices_reference,
@@ -15,15 +15,15 @@ from tambridge.frontend.matching import (
     search_by_projection,
     search_by_projection_reference,
 )
-from tambridge.frontend.orb_features import bucket_keypoints, level_budgets, lift_keypoints
-from tambridge.frontend.pose_estimation import (
+from tambridge.frontend.orb.features import bucket_keypoints, level_budgets, lift_keypoints
+from tambridge.frontend.orb.pose_estimation import (
     pose_normal_equations,
     pose_normal_equations_reference,
     refine_pose,
     refine_pose_reference,
     solve_pnp_ransac,
 )
-from tambridge.frontend.reprojection import chi2_thresholds, project_rgbd, rgbd_observations, row_weights
+from tambridge.frontend.orb.reprojection import chi2_thresholds, project_rgbd, rgbd_observations, row_weights
 from tambridge.geometry import exp_se3, inverse, transform_points
 
 K = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
@@ -202,9 +202,9 @@ def test_refine_pose_kernel_matches_reference(depth_noise_per_m):
 
 
 def test_project_visible_kernel_matches_reference():
-    from tambridge.frontend.map_matching import project_visible, project_visible_reference
-    from tambridge.frontend.slam_map import SlamMap
-    from tambridge.frontend.types import OrbFrontendConfig
+    from tambridge.frontend.orb.map_matching import project_visible, project_visible_reference
+    from tambridge.frontend.orb.slam_map import SlamMap
+    from tambridge.frontend.orb.config import OrbFrontendConfig
 
     rng = np.random.default_rng(10)
     camera = Camera(320, 240, 300.0, 300.0, 160.0, 120.0)
@@ -224,8 +224,8 @@ def test_project_visible_kernel_matches_reference():
 
 
 def test_map_points_take_the_distinctive_descriptor_of_their_observations():
-    from tambridge.frontend.orb_features import FrameFeatures
-    from tambridge.frontend.slam_map import Keyframe, SlamMap
+    from tambridge.frontend.orb.features import FrameFeatures
+    from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 
     rng = np.random.default_rng(8)
     slam_map = SlamMap()

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from tambridge.evaluation.trajectory import ate_rmse_m
-from tambridge.frontend.open3d_frontend import Open3dFrontend
-from tambridge.frontend.open3d_odometry import FrameToFrameOdometry
-from tambridge.frontend.types import Open3dFrontendConfig
+from tambridge.frontend.open3d.frontend import Open3dFrontend
+from tambridge.frontend.open3d.odometry import FrameToFrameOdometry
+from tambridge.frontend.open3d.config import Open3dFrontendConfig
 from tambridge.io.tum import open_sequence
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from tambridge.evaluation.trajectory import ate_rmse_m
-from tambridge.frontend.orb_frontend import OrbFrontend
-from tambridge.frontend.types import OrbFrontendConfig, scaled_for_image
+from tambridge.frontend.orb.frontend import OrbFrontend
+from tambridge.frontend.orb.config import OrbFrontendConfig, scaled_for_image
 from tambridge.geometry import inverse, look_at
 from tambridge.io.synthetic import default_camera, make_room_scene, render
 from tambridge.io.tum import Frame, open_sequence

@@ -9,22 +9,18 @@ import numpy as np
 import pytest
 import torch
 
-from pipelines.mapping import MappingStage, MappingView, evaluation_frames
+from tambridge.bridge.view import MappingView
+from tambridge.evaluation.mapping import evaluation_frames
+from tambridge.mapping.stage import MappingStage
 from pipelines.reconstruct import reconstruct
 from tambridge.bridge.view_selection import Selection
-from tambridge.config import Config, MapperConfig
-from tambridge.frontend.types import KeyframeEvent, TrackResult
-from tambridge.gaussians.mapper import (
-    ADAM_EPS,
-    TORCH_THREADS,
-    GaussianMap,
-    ViewExposure,
-    ViewImages,
-    compute_threads,
-    densify_mask,
-)
+from tambridge.config import Config
+from tambridge.gaussians.config import MapperConfig
+from tambridge.frontend.contract import KeyframeEvent, TrackResult
+from tambridge.gaussians.mapper import ADAM_EPS, GaussianMap, ViewExposure, ViewImages, densify_mask
+from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.gaussians.model import RenderOutput
-from tambridge.gaussians.ply import load_ply
+from tambridge.export.splats import load_ply
 from tambridge.geometry import exp_se3, inverse, transform_points
 from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render
 from tambridge.io.tum import open_sequence
@@ -197,7 +193,7 @@ def test_mapping_a_synthetic_sequence_at_ground_truth_poses(synthetic_sequence_d
         for index in range(0, len(sequence), 3):
             stage.on_keyframe(frontend.event(index), sequence[index], dict(frontend.poses))
             assert len(stage._cache) <= config.mapper.window_size + 1  # frames are not kept beyond the window
-        stage.finish(dict(frontend.poses), None)
+        stage.finish(dict(frontend.poses))
         poses = stage.rendering_poses(sequence.ground_truth)
         np.testing.assert_allclose(poses, sequence.ground_truth.world_from_camera, atol=1e-9)
         held_out = evaluation_frames(len(sequence), 5, {view.frame_index for view in stage.views})
@@ -347,7 +343,7 @@ def test_pixels_without_colour_data_pull_on_nothing():
 
 def test_more_rasteriser_threads_than_the_machine_has_run_on_what_it_has():
     """mapper.kernel_threads defaults to 2; numba refuses a count above its pool (1 on a one-core machine)."""
-    code = ("import numba\nfrom tambridge.gaussians.mapper import compute_threads\n"
+    code = ("import numba\nfrom tambridge.threads import compute_threads\n"
             "with compute_threads(1, 2):\n    print(numba.get_num_threads())\n")
     child = subprocess.run([sys.executable, "-c", code], env={**os.environ, "NUMBA_NUM_THREADS": "1"},
                            capture_output=True, text=True, timeout=120)

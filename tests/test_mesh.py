@@ -7,7 +7,7 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from tambridge.config import MeshConfig
+from tambridge.export.config import MeshConfig
 from tambridge.export.mesh import (
     MeshError,
     RgbdView,

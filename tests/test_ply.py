@@ -9,7 +9,7 @@ from plyfile import PlyData, PlyElement
 
 from tambridge.errors import SplatFormatError
 from tambridge.gaussians import GaussianTensors
-from tambridge.gaussians.ply import SH_C0, load_ply, save_ply
+from tambridge.export.splats import SH_C0, load_ply, save_ply
 
 # The INRIA layout as the issue specifies it, written out by hand (not imported) so the test checks the code.
 EXPECTED_PROPERTIES = [

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from pipelines.reconstruct import track_sequence
-from tambridge.frontend.orb_frontend import OrbFrontend
-from tambridge.frontend.types import OrbFrontendConfig
+from tambridge.frontend.orb.frontend import OrbFrontend
+from tambridge.frontend.orb.config import OrbFrontendConfig
 from tambridge.io.prefetch import FramePrefetcher
 from tambridge.io.tum import Frame, open_sequence
 from tambridge.runlog import RunLog

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tambridge.config import dotted_items
+from tambridge.state import dotted_items
 from tambridge.evaluation.report import RenderPair, format_metric, write_report
 from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.geometry import exp_se3

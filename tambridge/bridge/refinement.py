@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from tambridge.camera import Camera
-from tambridge.config import BridgeConfig
+from tambridge.bridge.config import BridgeConfig
 from tambridge.gaussians.losses import masked_l1
 from tambridge.gaussians.mapper import surface_depth_m
 from tambridge.gaussians.model import GaussianTensors, camera_from_world_tensor

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import enum
 
-from tambridge.frontend.types import KeyframeEvent
+from tambridge.frontend.contract import KeyframeEvent
 
 
 class Selection(enum.Enum):

@@ -21,7 +21,7 @@ import pycolmap
 from tambridge.camera import Camera
 from tambridge.errors import TambridgeError
 from tambridge.geometry import inverse
-from tambridge.export.atomic import atomic_write_text
+from tambridge.files import atomic_write_text
 from tambridge.trajectory import Trajectory, format_tum_trajectory
 
 logger = logging.getLogger("tambridge.evaluation.colmap")

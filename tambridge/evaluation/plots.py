@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from tambridge.evaluation.trajectory import TrajectoryErrors  # noqa: E402
-from tambridge.export.atomic import atomic_path  # noqa: E402
+from tambridge.files import atomic_path  # noqa: E402
 
 
 def _top_view_axes(positions_m: np.ndarray) -> tuple[int, int]:

@@ -22,11 +22,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from tambridge.config import dotted_items  # noqa: E402
+from tambridge.state import dotted_items  # noqa: E402
 from tambridge.evaluation.colmap import is_monocular_trajectory_file  # noqa: E402
 from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory  # noqa: E402
-from tambridge.export.atomic import atomic_path, atomic_write_text  # noqa: E402
+from tambridge.files import atomic_path, atomic_write_text  # noqa: E402
 from tambridge.trajectory import read_tum_trajectory  # noqa: E402
 
 logger = logging.getLogger("tambridge.evaluation.report")

@@ -22,9 +22,9 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from tambridge.camera import Camera
-from tambridge.config import MeshConfig
+from tambridge.export.config import MeshConfig
 from tambridge.errors import TambridgeError
-from tambridge.export.atomic import atomic_write_bytes
+from tambridge.files import atomic_write_bytes
 from tambridge.geometry import inverse
 
 logger = logging.getLogger("tambridge.export.mesh")
@@ -122,7 +122,7 @@ def gaussian_views(
     """
     import torch
 
-    from tambridge.gaussians import render
+    from tambridge.gaussians.rasterizer import render
 
     with torch.no_grad():
         for pose in world_from_camera:

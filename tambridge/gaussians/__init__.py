@@ -1,7 +1,7 @@
-"""Isotropic 3D Gaussians: the model, the differentiable rasteriser (CPU kernel, gsplat, torch reference), .ply I/O."""
+"""Isotropic 3D Gaussians: the model, the differentiable rasteriser (CPU kernel, gsplat, torch reference) and the
+online map. Their .ply layout is written and read by :mod:`tambridge.export.splats`."""
 
 from tambridge.gaussians.model import GaussianTensors, RenderOutput, ScreenGaussians
-from tambridge.gaussians.ply import load_ply, save_ply
 from tambridge.gaussians.rasterizer import render
 
-__all__ = ["GaussianTensors", "RenderOutput", "ScreenGaussians", "load_ply", "render", "save_ply"]
+__all__ = ["GaussianTensors", "RenderOutput", "ScreenGaussians", "render"]

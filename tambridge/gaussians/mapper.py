@@ -12,17 +12,15 @@ counts, so Gaussians added late get the same bias-corrected first steps as the f
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-from typing import Iterator, Sequence
+from typing import Sequence
 
-import numba
 import numpy as np
 import torch
 
 from tambridge.camera import Camera
-from tambridge.checkpoint import attribute_state, restore_attributes
-from tambridge.config import MapperConfig
+from tambridge.gaussians.config import MapperConfig
+from tambridge.state import attribute_state, restore_attributes
 from tambridge.gaussians.losses import map_loss
 from tambridge.gaussians.model import (
     NEAR_PLANE_M,
@@ -39,28 +37,6 @@ SILHOUETTE_FLOOR = 1e-6
 FIELDS = ("means_anchor_m", "rgb", "log_radii_m", "opacity_logits")
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-15  # 3DGS's value: radii and opacities get tiny gradients that a larger eps would swamp
-
-
-TORCH_THREADS = 1
-"""torch intra-op threads while mapping. The mapper's torch ops are small (one view's Gaussians) and torch's
-OpenMP pool fights the rasteriser's numba OpenMP threads for the cores: on 2 cores, one Adam step at 160x120
-took 1.38 s with 2 torch threads and 0.037 s with 1."""
-
-
-@contextlib.contextmanager
-def compute_threads(torch_count: int, numba_count: int) -> Iterator[None]:
-    """Run a block with ``torch_count`` torch intra-op threads and ``numba_count`` numba threads (0: numba's
-    default, all cores; no more than numba's pool has, which is one on a one-core machine), then restore the
-    previous counts."""
-    previous = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(torch_count)
-    pool = numba.config.NUMBA_NUM_THREADS
-    numba.set_num_threads(min(numba_count, pool) if numba_count > 0 else pool)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous[0])
-        numba.set_num_threads(previous[1])
 
 
 @dataclasses.dataclass

@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 
 from tambridge.camera import Camera
-from tambridge.export.atomic import atomic_path, atomic_write_text
+from tambridge.files import atomic_path, atomic_write_text
 from tambridge.geometry import interpolate_pose, look_at
 from tambridge.io.tum import read_file_list
 from tambridge.trajectory import Trajectory, format_tum_trajectory

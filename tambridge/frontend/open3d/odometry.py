@@ -13,13 +13,13 @@ import numpy as np
 import open3d as o3d
 
 from tambridge.camera import Camera
-from tambridge.checkpoint import attribute_state, restore_attributes
+from tambridge.state import attribute_state, restore_attributes
 from tambridge.geometry import inverse
-from tambridge.frontend.types import FrontendResult, KeyframeEvent, TrackResult, empty_timings
+from tambridge.frontend.contract import FrontendResult, KeyframeEvent, TrackResult, empty_timings
 from tambridge.io.tum import Frame
 from tambridge.trajectory import Trajectory
 
-logger = logging.getLogger("tambridge.frontend.open3d_odometry")
+logger = logging.getLogger("tambridge.frontend.open3d.odometry")
 
 
 def to_open3d_rgbd(frame: Frame, max_depth_m: float) -> o3d.geometry.RGBDImage:
@@ -64,7 +64,7 @@ def odometry_step(
 class FrameToFrameOdometry:
     """Chains frame-to-frame odometry into ``world_from_camera`` poses; the first frame is the world frame.
 
-    Follows the :class:`~tambridge.frontend.types.Frontend` protocol so it can stand in for the other
+    Follows the :class:`~tambridge.frontend.contract.Frontend` protocol so it can stand in for the other
     frontends. It has no map, so its keyframes (chosen by motion since the last one, for the mapper's sake)
     carry empty matched-point arrays and nothing is ever corrected. A failed registration keeps the
     constant-velocity prediction, is counted as lost and logged as a warning.

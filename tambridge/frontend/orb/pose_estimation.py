@@ -6,7 +6,7 @@ import cv2
 import numba
 import numpy as np
 
-from tambridge.frontend.reprojection import (
+from tambridge.frontend.orb.reprojection import (
     MIN_DEPTH_M,
     chi2_thresholds,
     huber_weights,
@@ -194,7 +194,7 @@ def refine_pose(
     """Motion-only refinement: Gauss-Newton on the Huber-robust RGB-D reprojection error (ORB-SLAM's PoseOptimization).
 
     ``points_world`` (N, 3) are fixed; ``observations`` (N, 3) are ``(u, v, 1/z)`` (see
-    :mod:`~tambridge.frontend.reprojection`); ``inv_sigma2`` (N,); ``depth_noise_per_m`` k of sigma_z = k z^2
+    :mod:`~tambridge.frontend.orb.reprojection`); ``inv_sigma2`` (N,); ``depth_noise_per_m`` k of sigma_z = k z^2
     (0: no depth rows). Each round optimises over the current inliers, then re-classifies every match by its
     chi2 (95% quantile); the last round drops the Huber kernel. Returns ``(camera_from_world 4x4, inliers (N,))``.
     The whole loop runs in one numba kernel (it ran twice per tracked frame, about 17 Gauss-Newton steps each,

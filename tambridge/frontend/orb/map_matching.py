@@ -13,12 +13,12 @@ import numba
 import numpy as np
 
 from tambridge.camera import Camera
-from tambridge.frontend.matching import KeypointGrid, match_descriptors, search_by_projection
-from tambridge.frontend.orb_features import FrameFeatures
-from tambridge.frontend.pose_estimation import refine_pose, solve_pnp_ransac
-from tambridge.frontend.reprojection import rgbd_observations
-from tambridge.frontend.slam_map import SlamMap
-from tambridge.frontend.types import OrbFrontendConfig
+from tambridge.frontend.orb.matching import KeypointGrid, match_descriptors, search_by_projection
+from tambridge.frontend.orb.features import FrameFeatures
+from tambridge.frontend.orb.pose_estimation import refine_pose, solve_pnp_ransac
+from tambridge.frontend.orb.reprojection import rgbd_observations
+from tambridge.frontend.orb.slam_map import SlamMap
+from tambridge.frontend.orb.config import OrbFrontendConfig
 from tambridge.geometry import inverse
 
 VIEWING_COS_MIN = 0.5  # ORB-SLAM: points seen more than 60 degrees off their mean viewing direction are skipped

@@ -21,45 +21,29 @@ import collections
 import contextlib
 import dataclasses
 import logging
-from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from tambridge.bridge.refinement import RefinementResult, refine_pose
+from tambridge.bridge.refinement import refine_pose
+from tambridge.bridge.view import MappingView
 from tambridge.bridge.view_selection import Selection, select_view
-from tambridge.checkpoint import attribute_state, restore_attributes
+from tambridge.state import attribute_state, restore_attributes
 from tambridge.config import Config
 from tambridge.evaluation.rendering import RenderingScores, score_renders
-from tambridge.evaluation.trajectory import ate_rmse_m
-from tambridge.frontend.types import FrontendResult, KeyframeEvent, TrackResult
-from tambridge.gaussians.mapper import TORCH_THREADS, GaussianMap, ViewExposure, ViewImages, backproject, compute_threads
-from tambridge.gaussians.ply import save_ply
+from tambridge.frontend.contract import KeyframeEvent, TrackResult
+from tambridge.gaussians.mapper import GaussianMap, ViewExposure, ViewImages, backproject
+from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.geometry import inverse, transform_points
 from tambridge.io.tum import Frame, RgbdSequence
 from tambridge.runlog import RunLog
 from tambridge.trajectory import Trajectory
 
-logger = logging.getLogger("tambridge.pipelines.mapping")
+logger = logging.getLogger("tambridge.mapping")
 
 OVERLAP_SAMPLES = 256
 """Pixels of the new view projected into earlier views to measure their overlap."""
-@dataclasses.dataclass
-class MappingView:
-    """A keyframe taken as a mapping view. ``keyframe_from_view`` (4x4) is the bridge's pose correction;
-    ``exposure`` its colour transform (None: the mapper does not compensate exposure); ``unexplained`` the share of
-    its depth pixels the map left unexplained once it was mapped (:meth:`GaussianMap.unexplained_fraction`)."""
-
-    keyframe_id: int
-    frame_index: int
-    keyframe_from_view: np.ndarray
-    selection: Selection
-    refinement: RefinementResult | None
-    exposure: ViewExposure | None = None
-    unexplained: float = 0.0
-
-
 def scaled_size(depth_m: np.ndarray, scale: float) -> tuple[int, int]:
     """(width, height) of a frame whose (H, W) depth is ``depth_m``, at ``scale``."""
     height, width = depth_m.shape
@@ -268,9 +252,9 @@ class MappingStage:
 
     # ---- after the frontend ----------------------------------------------------------------------------------
 
-    def finish(self, keyframe_poses: dict[int, np.ndarray], splats_path: Path | None) -> None:
+    def finish(self, keyframe_poses: dict[int, np.ndarray]) -> None:
         """Move every view to the final keyframe poses, run ``final_iterations_per_view`` more steps on each view
-        (in random order), prune, and write the map to ``splats_path`` (INRIA layout, atomically; None: not written)."""
+        (in random order) and prune."""
         with self.run_log.stage("final_refinement"), self._threads():
             self.update_keyframe_poses(keyframe_poses)
             # Views in random order, a window's worth at a time (bounded memory), each view in turn within a chunk.
@@ -285,9 +269,6 @@ class MappingStage:
                 removed = self.map.prune(self.camera, self.view_pose(self.views[-1]))
                 logger.info("final refinement: %d steps per view over %d views, %d Gaussians pruned -> %d",
                             self.config.mapper.final_iterations_per_view, len(self.views), removed, len(self.map))
-        if splats_path is not None:
-            with self.run_log.stage("export"):
-                save_ply(splats_path, self.map.world_gaussians())
 
     def rendering_poses(self, trajectory: Trajectory) -> np.ndarray:
         """(N, 4, 4) rendering pose of every frame of the frontend's ``trajectory`` (see the module doc).
@@ -357,49 +338,3 @@ def _stage_tensors_to(state: dict, device: torch.device) -> dict:
         views.append(view if exposure is view.exposure else dataclasses.replace(view, exposure=exposure))
     state["views"] = views
     return state
-
-
-def evaluation_frames(frame_count: int, every: int, mapping_frames: set[int]) -> list[int]:
-    """Novel views: every ``every``-th frame (0, every, 2 every, ...) that is not a mapping view."""
-    return [index for index in range(0, frame_count, every) if index not in mapping_frames]
-
-
-def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: RgbdSequence, config: Config,
-                    run_log: RunLog) -> dict:
-    """What the mapping stage adds to metrics.json: rendering scores (novel and mapping views), map and bridge figures.
-
-    Renders are at full resolution from the rendering poses (the bridge-refined views and the frames anchored on
-    them). With ground truth, the ATE of the mapping views' poses before (frontend) and after the bridge is added.
-    """
-    poses = mapping.rendering_poses(tracking.trajectory)
-    view_frames = sorted(view.frame_index for view in mapping.views)
-    novel = evaluation_frames(len(sequence), config.evaluation.novel_view_every, set(view_frames))
-    with run_log.stage("evaluation"):
-        novel_scores = mapping.evaluate(poses, novel)
-        view_scores = mapping.evaluate(poses, view_frames)
-    refinements = [view.refinement for view in mapping.views if view.refinement is not None and not view.refinement.skipped]
-    metrics = {
-        "rendering": {"novel_views": novel_scores.summary(), "mapping_views": view_scores.summary()},
-        "gaussians": len(mapping.map),
-        "mapping_views": len(mapping.views),
-        "mapping_resolution": [mapping.camera.width, mapping.camera.height],
-        "bridge": {
-            "enabled": config.bridge.enabled,
-            "view_selection": dict(mapping.selections),
-            "refined_views": len(refinements),
-            "mean_loss_initial": float(np.mean([r.loss_initial for r in refinements])) if refinements else None,
-            "mean_loss_final": float(np.mean([r.loss_final for r in refinements])) if refinements else None,
-        },
-    }
-    logger.info("rendering: novel views %.2f dB PSNR, %.3f SSIM (%d frames); mapping views %.2f dB, %.3f SSIM (%d); %d Gaussians",
-                novel_scores.summary()["psnr_db"] or float("nan"), novel_scores.summary()["ssim"] or float("nan"),
-                len(novel), view_scores.summary()["psnr_db"] or float("nan"), view_scores.summary()["ssim"] or float("nan"),
-                len(view_frames), len(mapping.map))
-    if sequence.ground_truth is not None and len(view_frames) >= 3:
-        timestamps = sequence.timestamps_s[view_frames]
-        frontend_poses = tracking.trajectory.world_from_camera[view_frames]
-        metrics["bridge"]["views_ate_rmse_m"] = {
-            "frontend": ate_rmse_m(Trajectory(timestamps, frontend_poses), sequence.ground_truth, align="se3"),
-            "rendering": ate_rmse_m(Trajectory(timestamps, poses[view_frames]), sequence.ground_truth, align="se3"),
-        }
-    return metrics

@@ -8,12 +8,12 @@ from contextlib import AbstractContextManager, nullcontext
 import numpy as np
 
 from tambridge.camera import Camera
-from tambridge.frontend.bundle_adjustment import BundleOptions, BundleProblem, solve_bundle_adjustment
-from tambridge.frontend.map_matching import match_map_points
-from tambridge.frontend.matching import build_keypoint_grid
-from tambridge.frontend.reprojection import rgbd_observations
-from tambridge.frontend.slam_map import Keyframe, SlamMap
-from tambridge.frontend.types import OrbFrontendConfig
+from tambridge.frontend.orb.bundle_adjustment import BundleOptions, BundleProblem, solve_bundle_adjustment
+from tambridge.frontend.orb.map_matching import match_map_points
+from tambridge.frontend.orb.matching import build_keypoint_grid
+from tambridge.frontend.orb.reprojection import rgbd_observations
+from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
+from tambridge.frontend.orb.config import OrbFrontendConfig
 from tambridge.geometry import inverse, transform_points
 
 

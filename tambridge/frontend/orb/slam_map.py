@@ -15,8 +15,8 @@ import dataclasses
 
 import numpy as np
 
-from tambridge.frontend.matching import distinctive_indices
-from tambridge.frontend.orb_features import FrameFeatures
+from tambridge.frontend.orb.matching import distinctive_indices
+from tambridge.frontend.orb.features import FrameFeatures
 from tambridge.geometry import inverse
 
 

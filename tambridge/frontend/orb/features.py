@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from tambridge.camera import Camera
-from tambridge.frontend.types import OrbFrontendConfig
+from tambridge.frontend.orb.config import OrbFrontendConfig
 
 DESCRIPTOR_BYTES = 32
 PATCH_SIZE_PX = 31

@@ -21,10 +21,11 @@ import numpy as np
 import open3d as o3d
 
 from tambridge.camera import Camera
-from tambridge.checkpoint import attribute_state, restore_attributes
-from tambridge.frontend.open3d_odometry import odometry_step, to_open3d_intrinsic, to_open3d_rgbd
+from tambridge.state import attribute_state, restore_attributes
+from tambridge.frontend.open3d.odometry import odometry_step, to_open3d_intrinsic, to_open3d_rgbd
 from tambridge.frontend.pose_graph import PoseEdge, optimise_pose_graph
-from tambridge.frontend.types import FrontendResult, KeyframeEvent, Open3dFrontendConfig, TrackResult, empty_timings
+from tambridge.frontend.contract import FrontendResult, KeyframeEvent, TrackResult, empty_timings
+from tambridge.frontend.open3d.config import Open3dFrontendConfig
 from tambridge.geometry import exp_se3, inverse, log_se3
 from tambridge.io.tum import Frame
 from tambridge.trajectory import Trajectory

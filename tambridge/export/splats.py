@@ -20,7 +20,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from tambridge.errors import SplatFormatError
-from tambridge.export.atomic import atomic_path
+from tambridge.files import atomic_path
 from tambridge.gaussians.model import GaussianTensors
 
 SH_C0 = 0.28209479177387814

@@ -41,8 +41,8 @@ from contextlib import contextmanager
 import numpy as np
 
 from tambridge.camera import Camera
-from tambridge.checkpoint import attribute_state, restore_attributes
-from tambridge.frontend.local_mapping import (
+from tambridge.state import attribute_state, restore_attributes
+from tambridge.frontend.orb.local_mapping import (
     create_points_from_depth,
     cull_recent_points,
     cull_redundant_keyframes,
@@ -50,21 +50,15 @@ from tambridge.frontend.local_mapping import (
     global_bundle_adjustment,
     local_bundle_adjustment,
 )
-from tambridge.frontend.loop_closing import LoopConsistency, close_loop, detect_loop
-from tambridge.frontend.map_matching import PoseFix, localise, match_map_points, refine_with_matches
-from tambridge.frontend.matching import build_keypoint_grid
-from tambridge.frontend.orb_features import FrameFeatures, OrbExtractor
-from tambridge.frontend.pose_estimation import solve_pnp_ransac
-from tambridge.frontend.slam_map import Keyframe, SlamMap
-from tambridge.frontend.types import (
-    FrontendResult,
-    KeyframeEvent,
-    OrbFrontendConfig,
-    TrackResult,
-    empty_timings,
-    scaled_for_image,
-)
-from tambridge.frontend.vocabulary import KeyframeDatabase, Vocabulary
+from tambridge.frontend.orb.loop_closing import LoopConsistency, close_loop, detect_loop
+from tambridge.frontend.orb.map_matching import PoseFix, localise, match_map_points, refine_with_matches
+from tambridge.frontend.orb.matching import build_keypoint_grid
+from tambridge.frontend.orb.features import FrameFeatures, OrbExtractor
+from tambridge.frontend.orb.pose_estimation import solve_pnp_ransac
+from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
+from tambridge.frontend.contract import FrontendResult, KeyframeEvent, TrackResult, empty_timings
+from tambridge.frontend.orb.config import OrbFrontendConfig, scaled_for_image
+from tambridge.frontend.orb.vocabulary import KeyframeDatabase, Vocabulary
 from tambridge.geometry import inverse
 from tambridge.io.tum import Frame
 from tambridge.trajectory import Trajectory
@@ -90,7 +84,7 @@ class _FrameRecord:
 
 
 class OrbFrontend:
-    """Streaming ORB RGB-D frontend; see the module docstring and :class:`~tambridge.frontend.types.Frontend`."""
+    """Streaming ORB RGB-D frontend; see the module docstring and :class:`~tambridge.frontend.contract.Frontend`."""
 
     def __init__(
         self,
@@ -158,7 +152,7 @@ class OrbFrontend:
             return self.extractor.extract(frame.rgb, frame.depth_m)
 
     def track(self, frame: Frame, features: FrameFeatures | None = None) -> TrackResult:
-        """Localise one frame (frames must come in order); see :class:`~tambridge.frontend.types.TrackResult`.
+        """Localise one frame (frames must come in order); see :class:`~tambridge.frontend.contract.TrackResult`.
 
         ``features``: the frame's :meth:`extract`, computed ahead (the same result); None extracts them here.
         """

@@ -3,7 +3,7 @@
 1. Candidates: keyframes the database scores at least ``loop_min_score_ratio`` times the lowest score of
    the new keyframe's covisible neighbours (ORB-SLAM's bar), that are not connected to it, and whose
    covisibility group was also a candidate for the ``loop_consistency`` keyframes before (:class:`LoopConsistency`).
-2. Verification: :func:`~tambridge.frontend.map_matching.localise` of the new keyframe against the points of
+2. Verification: :func:`~tambridge.frontend.orb.map_matching.localise` of the new keyframe against the points of
    the candidate and its neighbours; at least ``loop_min_inliers`` inliers.
 3. Correction: a pose graph over all keyframes (consecutive-keyframe edges, strong covisibility edges, every
    loop edge so far, weak links between map segments) optimised with Open3D; points follow their reference
@@ -18,16 +18,16 @@ import logging
 import numpy as np
 
 from tambridge.camera import Camera
-from tambridge.frontend.local_mapping import fuse_points
-from tambridge.frontend.map_matching import PoseFix, localise
-from tambridge.frontend.matching import build_keypoint_grid
+from tambridge.frontend.orb.local_mapping import fuse_points
+from tambridge.frontend.orb.map_matching import PoseFix, localise
+from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.pose_graph import PoseEdge, optimise_pose_graph
-from tambridge.frontend.slam_map import Keyframe, SlamMap
-from tambridge.frontend.types import OrbFrontendConfig
-from tambridge.frontend.vocabulary import KeyframeDatabase, bow_score
+from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
+from tambridge.frontend.orb.config import OrbFrontendConfig
+from tambridge.frontend.orb.vocabulary import KeyframeDatabase, bow_score
 from tambridge.geometry import inverse
 
-logger = logging.getLogger("tambridge.frontend.loop_closing")
+logger = logging.getLogger("tambridge.frontend.orb.loop_closing")
 
 STRONG_COVISIBILITY = 100  # ORB-SLAM's essential graph keeps covisibility edges of at least 100 shared points
 LOOP_GROUP_NEIGHBOURS = 5

@@ -3,7 +3,7 @@
 The normal equations are split into camera blocks (6 per variable keyframe) and point blocks (3 per point);
 points are eliminated first (Schur complement, Triggs et al. 2000, sec. 6.1), the reduced camera system is
 solved densely (a local BA has tens of keyframes, a global one hundreds), then points are back-substituted.
-Residuals are the RGB-D reprojection of :mod:`~tambridge.frontend.reprojection` with an optional Huber kernel
+Residuals are the RGB-D reprojection of :mod:`~tambridge.frontend.orb.reprojection` with an optional Huber kernel
 (threshold = the chi2 95% quantile of the observation's degrees of freedom, as ORB-SLAM). The cost reported
 is Ceres' convention, ``0.5 * sum(rho(chi2))``, so it can be compared with pycolmap's bundle adjustment.
 """
@@ -17,7 +17,7 @@ import numpy as np
 import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
-from tambridge.frontend.reprojection import (
+from tambridge.frontend.orb.reprojection import (
     MIN_DEPTH_M,
     chi2_thresholds,
     huber_weights,
