@@ -1,7 +1,7 @@
 """Fusion Bridge on vs off, default vs fast preset: rendering quality and speed of ``tambridge reconstruct``.
 
     python benchmarks/reconstruct.py                         # 7-Scenes (first 150 frames) + a synthetic loop
-    python benchmarks/reconstruct.py --max-frames 0          # all 700 7-Scenes frames (about an hour on 2 cores)
+    python benchmarks/reconstruct.py --max-frames 0          # all 700 7-Scenes frames
 
 Every case is one ``reconstruct`` run in its own process (peak memory = that process's ru_maxrss, read with
 wait4), written under benchmarks/results/runs/. Rendering scores are those of metrics.json: renders at full
@@ -33,8 +33,8 @@ from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence  # noqa: E402
 
 PRESETS = ("default", "fast")
-# 320x240 with 3 x 3 rays per pixel (anti-aliased, as a camera integrates over its pixels; writing it takes
-# about 5-13 min on 2 cores, once: it is kept under benchmarks/results/runs/).
+# 320x240 with 3 x 3 rays per pixel (anti-aliased, as a camera integrates over its pixels; slow to write, so it
+# is written once and kept under benchmarks/results/runs/).
 SYNTHETIC = SynthOptions(frame_count=120, width=320, height=240, seed=0, supersampling=3)
 # The synthetic depth is registered to colour and exact up to its 1/5000 m steps, so the ORB frontend's RGB-D
 # residuals are on, with a small depth noise.

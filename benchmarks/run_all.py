@@ -1,7 +1,7 @@
 """One benchmark over the real data: tambridge against its peers, side by side, on the same machine.
 
     python benchmarks/run_all.py --data ../shared/data            # every sequence with ground truth, full length
-    python benchmarks/run_all.py --data ../shared/data --quick    # first 100 frames of each (under 10 min on 2 cores)
+    python benchmarks/run_all.py --data ../shared/data --quick    # first 100 frames of each
     python benchmarks/run_all.py --data ../shared/data --gpu      # tambridge's mapping on CUDA (gsplat); stops at once without CUDA
 
 With ``--gpu`` every tambridge run gets ``--device cuda`` (its Gaussian map, bridge and rendering evaluation run on

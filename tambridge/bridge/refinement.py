@@ -30,9 +30,8 @@ from tambridge.gaussians.model import GaussianTensors, camera_from_world_tensor
 from tambridge.gaussians.rasterizer import render
 from tambridge.geometry import exp_se3
 
-# Length of a unit step of the refined twist's translation (L-BFGS's first step is at most one unit long). In 10
-# evaluations on the synthetic view of tests/test_bridge.py, from 2 cm / 1 deg: 1 m units 7.0 mm, 0.1 m 5.5 mm,
-# 0.01 m 20 mm (the first step too short); from 5 mm / 0.2 deg all three end at 3.4-3.5 mm.
+# Length of a unit step of the refined twist's translation (L-BFGS's first step is at most one unit long): long
+# units overshoot a centimetre-scale error and short ones do not reach it within the evaluation budget.
 TWIST_UNIT_M = 0.1
 
 
@@ -119,15 +118,13 @@ def refine_pose(
     pose of the lowest joint loss seen, so a refinement never makes the loss worse than the frontend's pose.
 
     L-BFGS with a strong-Wolfe line search rather than Adam: Adam's steps stay near its learning rate however small
-    the gradient, so in 10 steps it circles the optimum. On a synthetic view (map from two neighbours at ground-truth
-    poses, 10 evaluations) L-BFGS brings a 5 mm / 0.2 deg error to 3.4 mm / 0.02 deg and 2 cm / 1 deg to 5.5 mm /
-    0.07 deg (the small map bounds both).
+    the gradient, so in 10 steps it circles the optimum.
     """
     device = gaussians.means_m.device
     start = torch.from_numpy(np.asarray(world_from_camera, dtype=np.float64)).to(device)
     # Translation in units of TWIST_UNIT_M, rotation in units of TWIST_UNIT_M / lever_m radians (a unit step turns
-    # points at lever_m as far as a unit translation). In metres the first step was 0.2-0.5 m on 7-Scenes, and the
-    # line search spent 3 of the 10 evaluations coming back from it.
+    # points at lever_m as far as a unit translation). In metres the first step overshot, and the line search
+    # spent evaluations coming back from it.
     twist_scale = TWIST_UNIT_M * torch.tensor([1.0, 1.0, 1.0] + [1.0 / config.lever_m] * 3, dtype=torch.float64, device=device)
     twist = torch.zeros(6, dtype=torch.float64, device=device, requires_grad=True)
     points = torch.from_numpy(np.asarray(points_world_m, dtype=np.float64).reshape(-1, 3)).to(device)

@@ -5,8 +5,8 @@ Layout. The image is cut into ``TILE_PX`` x ``TILE_PX`` tiles. Each visible Gaus
 3-sigma box overlaps, each tile's list in front-to-back order: a stable counting sort by tile in index order
 (parallel over chunks of Gaussians, reading the input in sequence), then a stable radix sort of each tile's list by
 depth (parallel over tiles, in cache). A list entry carries a copy of its Gaussian's packed row, so the passes
-below read memory in order instead of jumping around the (N, 8) input; that alone halves their time at 200k
-Gaussians. Rows are stored in the dtype of the input (float32 for the mapper's float32 Gaussians, which halves the
+below read memory in order instead of jumping around the (N, 8) input.
+Rows are stored in the dtype of the input (float32 for the mapper's float32 Gaussians, which halves the
 memory traffic at no loss: every kernel computes in float64). Tiles are independent, so the tile passes run one
 group of tiles per thread, the groups balanced by entry count (:func:`balanced_groups`).
 
@@ -38,8 +38,8 @@ from tambridge.gaussians.model import ALPHA_MAX, NEAR_PLANE_M, SIGMA_CUTOFF, TRA
 
 TILE_PX = 32
 """Tile side, pixels. 32 rather than GPU rasterisers' 16: a Gaussian whose box crosses a tile border is listed (and
-its footprint evaluated) once per tile, and at 640x480 with 200k one-pixel Gaussians 32 px tiles hold 24 % fewer
-entries (1.3 instead of 1.7 per Gaussian), which the binning, both passes and the gradient sum all scale with."""
+its footprint evaluated) once per tile, so larger tiles hold fewer entries, which the binning, both passes and the
+gradient sum all scale with."""
 BOX_SLACK_PX = 1e-3
 """The pixel box of a Gaussian is widened by this so that rounding never drops a pixel the 3-sigma test keeps."""
 
@@ -107,7 +107,7 @@ def _tile_box(row, width, height):
     x0, x1, y0, y1 = _pixel_box(u, v, radius, 0, width - 1, 0, height - 1)
     if x0 > x1 or y0 > y1:  # between pixel centres
         return 0, -1, 0, -1
-    # TILE_PX is a compile-time constant: the divisions become shifts (runtime ones cost ~10 % of the binning).
+    # TILE_PX is a compile-time constant: the divisions become shifts (runtime divisions slow the binning).
     return x0 // TILE_PX, x1 // TILE_PX, y0 // TILE_PX, y1 // TILE_PX
 
 
@@ -176,7 +176,7 @@ def _scatter_to_tiles(depth_bits, boxes, tiles_x, chunk_size, chunk_cursors, chu
     """Stable counting sort by tile, in index order: Gaussian i's depth key ``depth_bits[i] << 32 | i`` goes to the
     next free place of each tile it overlaps (``boxes`` (N, 4)). Each chunk of ``chunk_size`` Gaussians writes from
     its own cursors (``chunk_cursors`` (chunks, tiles), after those of the chunks before it), so each tile's keys
-    come in index order. Only the 8-byte keys move here: scattering whole rows to every tile is ~5x slower.
+    come in index order. Only the 8-byte keys move here: scattering whole rows to every tile is slower.
 
     With ``with_slots``, Gaussian i's entries get slots ``slot_starts[i]:slot_starts[i + 1]``, its chunk's from
     ``chunk_first_slots[chunk]`` on."""
@@ -251,7 +251,7 @@ def _sort_tiles(packed, boxes, tile_keys, tile_starts, tiles_x, tile_groups, gro
             sort_depth_keys(keys)
             tx, ty = tile % tiles_x, tile // tiles_x
             for entry in range(start, end):
-                # Random reads of the input, but one per entry and independent: the loads overlap (~10 ns a row).
+                # Random reads of the input, but one per entry and independent: the loads overlap.
                 i = keys[entry - start] & 0xFFFFFFFF
                 for column in range(PACKED_COLUMNS):
                     entry_rows[entry, column] = packed[i, column]
@@ -269,7 +269,7 @@ def balanced_groups(costs, group_count):
     Returns ``items`` (n,) and ``group_starts`` (group_count + 1,): group g is ``items[group_starts[g]:group_starts[g + 1]]``.
 
     numba's ``prange`` splits its range into equal contiguous blocks, one per thread, whatever each item costs; the
-    image's tiles differ by up to 4x in entries (fewer at the image edges and in empty regions), so the thread with the
+    image's tiles differ widely in entries (fewer at the image edges and in empty regions), so the thread with the
     busier half of the image would set the pace.
     """
     loads = np.zeros(group_count)
@@ -411,7 +411,7 @@ def _forward(entry_rows, tile_starts, tile_groups, group_starts, tiles_x, tile_p
         for tile in tile_groups[group_starts[group] : group_starts[group + 1]]:
             x_lo, x_hi, y_lo, y_hi = _tile_pixels(tile, tiles_x, tile_px, width, height)
             tile_h, tile_w = y_hi - y_lo + 1, x_hi - x_lo + 1
-            # One array for what a pixel update reads and writes (one address per update instead of five, -10% time):
+            # One array for what a pixel update reads and writes (one address per update instead of five):
             # transmittance, then the sums of colour, depth and silhouette.
             pixels = np.zeros((tile_h, tile_w, 6))
             pixels[:, :, _PIXEL_T] = 1.0

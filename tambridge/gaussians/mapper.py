@@ -95,7 +95,7 @@ class ViewExposure:
     to what this view's camera recorded (auto exposure and white balance change along a real sequence).
 
     Without it the map's colours follow whichever views were optimised last, and earlier parts of the sequence
-    are rendered too bright or too dark (7-Scenes redkitchen: the same table 13 % brighter after 100 frames).
+    are rendered too bright or too dark.
     The first view is ``frozen`` at the identity, which fixes the map's colour scale (gain and colours are
     otherwise ambiguous). ``parameters`` (2, 3): log gains, biases; optimised with Adam at ``learning_rate``.
     A new exposure lives on ``device``, or on the device of the ``parameters`` it starts from.

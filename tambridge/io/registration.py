@@ -58,10 +58,8 @@ class ColourToDepth:
         """(H, W, 3) uint8 ``colour`` (colour camera) resampled onto the depth camera's pixels by ``depth_m`` (H, W).
 
         Bilinear; pixels whose ray leaves the colour image are black (``valid_region`` excludes them). One numba
-        pass without the GIL, as it runs in the frame prefetcher's thread beside tracking: at 640x480 about 6 ms of
-        CPU plus 1 ms for :func:`fill_missing_depth` (7.2 ms in all on an idle machine, 10.1 ms before the
-        bilinear weights were hoisted and the fill's median taken over blocks), against about 125 ms for
-        :meth:`colour_in_depth_camera_reference` (measured at load 4).
+        pass without the GIL, as it runs in the frame prefetcher's thread beside tracking;
+        :meth:`colour_in_depth_camera_reference` is its slow twin.
         """
         from tambridge.io.registration_kernel import resample_colour
 
@@ -133,7 +131,7 @@ def fill_missing_depth(depth_m: np.ndarray, block_px: int = FILL_BLOCK_PX) -> np
     block_max = padded.reshape(blocks_y, block_px, -1).max(axis=1).reshape(blocks_y, blocks_x, block_px).max(axis=2)
     empty = block_max == 0
     if empty.any():
-        # Over the blocks, not the pixels: a median of 300k depths cost 2 ms per frame, more than all the rest.
+        # Over the blocks, not the pixels: a median over every pixel cost more than all the rest.
         block_max[empty] = np.median(block_max[~empty])
     guess = cv2.resize(block_max, padded.shape[::-1], interpolation=cv2.INTER_NEAREST)[:height, :width]
     filled = depth_m.astype(np.float32, copy=True)

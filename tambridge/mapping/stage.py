@@ -197,7 +197,7 @@ class MappingStage:
         """Whether the map, rendered at ``world_from_camera``, leaves ``mapper.coverage_unexplained`` more of the
         frame's valid depth pixels unexplained than of its anchor view's (always False with the rule off or no view).
         The anchor view's share is what the map cannot explain even where it was made (depth noise and holes, a
-        map of one view): on 7-Scenes 4-13 %, on the synthetic loop 0.5-5 %."""
+        map of one view)."""
         threshold = self.config.mapper.coverage_unexplained
         if not threshold or not self.views:
             return False

@@ -30,7 +30,7 @@ from tambridge.frontend.orb.reprojection import (
 from tambridge.geometry import exp_se3
 
 # Once open3d or pycolmap is loaded (their OpenMP runtime), multi-threaded OpenBLAS factorisations run
-# hundreds of times slower on a 2-core machine (threads spin against each other); one thread is fast.
+# far slower (threads spin against each other); one thread is fast.
 _THREADPOOLS = ThreadpoolController()
 
 

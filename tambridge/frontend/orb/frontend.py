@@ -22,7 +22,7 @@ background thread, as ORB-SLAM's local-mapping and loop-closing threads do, whil
 next frames. Keyframes are chosen by the same rules as without the thread; when one is due while the thread
 still maps the previous one, tracking waits for it (ORB-SLAM, fed frames in real time, would skip the keyframe
 instead, but frames here come as fast as tracking takes them: under CPU load, skipping starved the map of
-keyframes and lost tracking, 9.8 cm ATE on 7-Scenes). One lock guards the map:
+keyframes and lost tracking). One lock guards the map:
 tracking holds it while it reads the local map, the mapping thread while it edits the map or reads BA inputs,
 not while it solves. Frame poses are kept relative to their reference keyframe, so corrections made in the
 background carry over to tracking. Without the thread everything runs inside ``track`` and results are

@@ -197,8 +197,8 @@ def refine_pose(
     :mod:`~tambridge.frontend.orb.reprojection`); ``inv_sigma2`` (N,); ``depth_noise_per_m`` k of sigma_z = k z^2
     (0: no depth rows). Each round optimises over the current inliers, then re-classifies every match by its
     chi2 (95% quantile); the last round drops the Huber kernel. Returns ``(camera_from_world 4x4, inliers (N,))``.
-    The whole loop runs in one numba kernel (it ran twice per tracked frame, about 17 Gauss-Newton steps each,
-    and the Python around each step cost more than the step); :func:`refine_pose_reference` is its slow twin.
+    The whole loop runs in one numba kernel (it runs twice per tracked frame, and the Python around each
+    Gauss-Newton step cost more than the step); :func:`refine_pose_reference` is its slow twin.
     """
     weights = row_weights(observations, inv_sigma2, depth_noise_per_m)
     camera_from_world, inliers = _refine_pose_kernel(
