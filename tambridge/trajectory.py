@@ -9,7 +9,7 @@ import numpy as np
 
 from tambridge.errors import TrajectoryFormatError
 from tambridge.files import atomic_write_text
-from tambridge.geometry import interpolate_pose, pose_from_tum, tum_from_pose
+from tambridge.geometry import pose_from_tum, tum_from_pose
 
 
 @dataclasses.dataclass
@@ -47,16 +47,6 @@ class Trajectory:
             later_is_nearer = self.timestamps_s[after] - timestamps_s < timestamps_s - self.timestamps_s[before]
             rows = np.where(later_is_nearer, after, before)
         return Trajectory(self.timestamps_s[rows], self.world_from_camera[rows])
-
-    def pose_at(self, timestamp_s: float) -> np.ndarray:
-        """Pose at a time inside the trajectory's span, interpolated on SE(3) between neighbours."""
-        index = int(np.searchsorted(self.timestamps_s, timestamp_s))
-        if index == 0:
-            return self.world_from_camera[0].copy()
-        if index >= len(self):
-            return self.world_from_camera[-1].copy()
-        t0, t1 = self.timestamps_s[index - 1], self.timestamps_s[index]
-        return interpolate_pose(self.world_from_camera[index - 1], self.world_from_camera[index], (timestamp_s - t0) / (t1 - t0))
 
 
 def parse_tum_trajectory(text: str, source: str) -> Trajectory:

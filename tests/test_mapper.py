@@ -53,8 +53,6 @@ def test_moving_an_anchor_moves_exactly_its_gaussians():
     after = gaussian_map.gaussians().means_m.double().numpy()
     np.testing.assert_array_equal(after[:50], before[:50])
     np.testing.assert_allclose(after[50:], transform_points(correction, before[50:]), atol=1e-6)
-    np.testing.assert_allclose(gaussian_map.anchor_poses()[1], correction @ poses[1])
-    assert gaussian_map.anchor_counts() == {0: 50, 1: 40}
 
 
 def test_a_map_and_camera_moved_together_render_the_same():

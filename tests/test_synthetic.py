@@ -23,8 +23,7 @@ def test_depth_reprojects_onto_the_neighbour_within_a_pixel(synthetic_sequence_d
     camera = sequence.camera
     for index in (0, 10, 20):
         frame_a, frame_b = sequence[index], sequence[index + 1]
-        pose_a = sequence.ground_truth.pose_at(frame_a.timestamp_s)
-        pose_b = sequence.ground_truth.pose_at(frame_b.timestamp_s)
+        pose_a, pose_b = sequence.ground_truth.nearest([frame_a.timestamp_s, frame_b.timestamp_s]).world_from_camera
         points_a, pixels_a = _back_project(frame_a.depth_m, camera)
         points_b = transform_points(inverse(pose_b) @ pose_a, points_a)
         pixels_b = _project(points_b, camera)

@@ -19,7 +19,6 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 import trimesh
-from scipy.spatial import cKDTree
 
 from tambridge.camera import Camera
 from tambridge.export.config import MeshConfig
@@ -172,16 +171,3 @@ def sample_mesh_surface_m(mesh: trimesh.Trimesh, spacing_m: float, seed: int = 0
     count = max(1, int(np.ceil(mesh.area / spacing_m**2)))
     points, _ = trimesh.sample.sample_surface(mesh, count, seed=seed)
     return np.asarray(points)
-
-
-def chamfer_distance_m(points_a: np.ndarray, points_b: np.ndarray) -> float:
-    """Symmetric chamfer distance of two point sets (N, 3) and (M, 3), metres.
-
-    The mean of the two mean nearest-neighbour distances, a -> b and b -> a (as in the 3D reconstruction
-    literature, e.g. Knapitsch et al. 2017 use its two halves as accuracy and completeness).
-    """
-    assert points_a.ndim == 2 and points_a.shape[1] == 3, points_a.shape
-    assert points_b.ndim == 2 and points_b.shape[1] == 3, points_b.shape
-    a_to_b, _ = cKDTree(points_b).query(points_a)
-    b_to_a, _ = cKDTree(points_a).query(points_b)
-    return float(0.5 * (a_to_b.mean() + b_to_a.mean()))

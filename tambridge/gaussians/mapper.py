@@ -179,15 +179,6 @@ class GaussianMap:
             self._anchor_ids.append(anchor_id)
             self._world_from_anchor = torch.cat([self._world_from_anchor, pose[None]], dim=0)
 
-    def anchor_poses(self) -> dict[int, np.ndarray]:
-        """Anchor id -> 4x4 ``world_from_anchor``."""
-        return {anchor_id: self._world_from_anchor[row].cpu().numpy() for row, anchor_id in enumerate(self._anchor_ids)}
-
-    def anchor_counts(self) -> dict[int, int]:
-        """Anchor id -> number of Gaussians it holds."""
-        counts = torch.bincount(self._anchor_rows, minlength=len(self._anchor_ids)).tolist()
-        return dict(zip(self._anchor_ids, counts))
-
     # ---- the Gaussians --------------------------------------------------------------------------------------
 
     def gaussians(self, params: dict[str, torch.Tensor] | None = None, rows: torch.Tensor | None = None) -> GaussianTensors:
