@@ -19,8 +19,8 @@ from tambridge.frontend.orb.features import bucket_keypoints, level_budgets, lif
 from tambridge.frontend.orb.pose_estimation import (
     pose_normal_equations,
     pose_normal_equations_reference,
-    refine_pose,
-    refine_pose_reference,
+    refine_camera_from_world,
+    refine_camera_from_world_reference,
     solve_pnp_ransac,
 )
 from tambridge.frontend.orb.reprojection import chi2_thresholds, project_rgbd, rgbd_observations, row_weights
@@ -170,7 +170,7 @@ def test_pnp_then_refinement_recovers_the_pose_and_rejects_outliers():
     guess = exp_se3(rng.normal(0, 0.05, 6)) @ camera_from_world
     pnp_pose, pnp_inliers = solve_pnp_ransac(points_world, observations[:, :2], K, guess, 3.0, 100)
     assert pnp_pose is not None and pnp_inliers[40:].mean() > 0.9
-    refined, inliers = refine_pose(pnp_pose, points_world, observations, np.ones(len(points_world)), K, 0.003)
+    refined, inliers = refine_camera_from_world(pnp_pose, points_world, observations, np.ones(len(points_world)), K, 0.003)
     assert not inliers[:40].any() and inliers[40:].mean() > 0.9
     assert np.linalg.norm(inverse(refined)[:3, 3] - inverse(camera_from_world)[:3, 3]) < 0.005
 
@@ -182,7 +182,7 @@ def test_refinement_from_the_prior_alone_rejects_outliers_and_returns_a_rotation
     camera_from_world, points_world, observations = _scene(rng, outliers=40)
     prior = exp_se3(np.array([0.02, -0.03, 0.01, 0.01, -0.015, 0.01])) @ camera_from_world
     prior[:3, :3] *= 1.0 + 1e-6
-    refined, inliers = refine_pose(prior, points_world, observations, np.ones(len(points_world)), K, 0.003)
+    refined, inliers = refine_camera_from_world(prior, points_world, observations, np.ones(len(points_world)), K, 0.003)
     assert not inliers[:40].any() and inliers[40:].mean() > 0.9
     assert np.linalg.norm(inverse(refined)[:3, 3] - inverse(camera_from_world)[:3, 3]) < 0.005
     np.testing.assert_allclose(refined[:3, :3] @ refined[:3, :3].T, np.eye(3), atol=1e-12)
@@ -190,13 +190,13 @@ def test_refinement_from_the_prior_alone_rejects_outliers_and_returns_a_rotation
 
 
 @pytest.mark.parametrize("depth_noise_per_m", [0.0, 0.003])
-def test_refine_pose_kernel_matches_reference(depth_noise_per_m):
+def test_refine_camera_from_world_kernel_matches_reference(depth_noise_per_m):
     rng = np.random.default_rng(9)
     camera_from_world, points_world, observations = _scene(rng, outliers=40)
     prior = exp_se3(rng.normal(0, 0.02, 6)) @ camera_from_world
     inv_sigma2 = rng.uniform(0.5, 1.0, len(points_world))
-    fast, fast_inliers = refine_pose(prior, points_world, observations, inv_sigma2, K, depth_noise_per_m)
-    slow, slow_inliers = refine_pose_reference(prior, points_world, observations, inv_sigma2, K, depth_noise_per_m)
+    fast, fast_inliers = refine_camera_from_world(prior, points_world, observations, inv_sigma2, K, depth_noise_per_m)
+    slow, slow_inliers = refine_camera_from_world_reference(prior, points_world, observations, inv_sigma2, K, depth_noise_per_m)
     np.testing.assert_array_equal(fast_inliers, slow_inliers)
     np.testing.assert_allclose(fast, slow, atol=1e-12)
 

@@ -85,7 +85,7 @@ def reprojection_error_px(
 
 @dataclasses.dataclass
 class RefinementResult:
-    """Outcome of :func:`refine_pose`: the refined 4x4 ``world_from_camera`` and how the loss went.
+    """Outcome of :func:`refine_render_pose`: the refined 4x4 ``world_from_camera`` and how the loss went.
 
     ``loss_initial``/``loss_final``: joint loss at the frontend pose and at the returned pose (the lowest seen);
     ``gated_fraction``: share of the pixels that passed the gates at the frontend pose; ``skipped``: True when too
@@ -99,7 +99,7 @@ class RefinementResult:
     skipped: bool
 
 
-def refine_pose(
+def refine_render_pose(
     gaussians: GaussianTensors,
     camera: Camera,
     world_from_camera: np.ndarray,

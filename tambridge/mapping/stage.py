@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import torch
 
-from tambridge.bridge.refinement import refine_pose
+from tambridge.bridge.refinement import refine_render_pose
 from tambridge.bridge.view import MappingView
 from tambridge.bridge.view_selection import Selection, select_view
 from tambridge.state import attribute_state, restore_attributes
@@ -174,7 +174,7 @@ class MappingStage:
                     gaussians = self.map.gaussians(rows=in_view)
                 # The colour term compares map colours: the frame's, through the exposure it starts from.
                 observed_rgb = images.rgb if exposure is None else exposure.invert(images.rgb)
-                refinement = refine_pose(gaussians, self.camera, self.keyframe_poses[event.keyframe_id],
+                refinement = refine_render_pose(gaussians, self.camera, self.keyframe_poses[event.keyframe_id],
                                          observed_rgb, images.depth_m, event.points_world_m, keypoints, bridge,
                                          backend=self.config.mapper.backend)
                 keyframe_from_view = inverse(self.keyframe_poses[event.keyframe_id]) @ refinement.world_from_camera

@@ -152,8 +152,8 @@ def _exp_se3(xi):
 
 
 @numba.njit(cache=True, nogil=True)
-def _refine_pose_kernel(camera_from_world, points_world, observations, weights, thresholds, rounds, iterations,
-                        fx, fy, cx, cy):
+def _refine_camera_from_world_kernel(camera_from_world, points_world, observations, weights, thresholds, rounds,
+                                     iterations, fx, fy, cx, cy):
     n = points_world.shape[0]
     inliers = np.ones(n, np.bool_)
     none_active = np.zeros(n, np.bool_)
@@ -181,7 +181,7 @@ def _refine_pose_kernel(camera_from_world, points_world, observations, weights, 
     return camera_from_world, inliers
 
 
-def refine_pose(
+def refine_camera_from_world(
     camera_from_world: np.ndarray,
     points_world: np.ndarray,
     observations: np.ndarray,
@@ -198,10 +198,10 @@ def refine_pose(
     (0: no depth rows). Each round optimises over the current inliers, then re-classifies every match by its
     chi2 (95% quantile); the last round drops the Huber kernel. Returns ``(camera_from_world 4x4, inliers (N,))``.
     The whole loop runs in one numba kernel (it runs twice per tracked frame, and the Python around each
-    Gauss-Newton step cost more than the step); :func:`refine_pose_reference` is its slow twin.
+    Gauss-Newton step cost more than the step); :func:`refine_camera_from_world_reference` is its slow twin.
     """
     weights = row_weights(observations, inv_sigma2, depth_noise_per_m)
-    camera_from_world, inliers = _refine_pose_kernel(
+    camera_from_world, inliers = _refine_camera_from_world_kernel(
         np.array(camera_from_world, np.float64), np.ascontiguousarray(points_world, np.float64),
         np.ascontiguousarray(observations, np.float64), np.ascontiguousarray(weights, np.float64),
         np.ascontiguousarray(chi2_thresholds(weights), np.float64), rounds, iterations, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
@@ -210,7 +210,7 @@ def refine_pose(
     return orthonormalised(camera_from_world), inliers
 
 
-def refine_pose_reference(
+def refine_camera_from_world_reference(
     camera_from_world: np.ndarray,
     points_world: np.ndarray,
     observations: np.ndarray,
@@ -220,7 +220,7 @@ def refine_pose_reference(
     rounds: int = 4,
     iterations: int = 10,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Slow twin of :func:`refine_pose`: the same loop in Python over :func:`pose_normal_equations_reference`."""
+    """Slow twin of :func:`refine_camera_from_world`: the same loop in Python over :func:`pose_normal_equations_reference`."""
     weights = row_weights(observations, inv_sigma2, depth_noise_per_m)
     thresholds = chi2_thresholds(weights)
     inliers = np.ones(len(points_world), bool)
