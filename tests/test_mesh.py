@@ -14,7 +14,6 @@ from tambridge.export.mesh import (
     convert_mesh,
     fuse_tsdf_mesh,
     read_mesh,
-    sample_mesh_surface_m,
     sensor_views,
     write_mesh,
 )
@@ -23,6 +22,13 @@ from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, r
 from tambridge.io.tum import open_sequence
 
 MAX_DEPTH_M = 3.0
+
+
+def _sample_mesh_surface_m(mesh: trimesh.Trimesh, spacing_m: float, seed: int = 0) -> np.ndarray:
+    """About one point per ``spacing_m`` squared of surface, uniformly at random, (N, 3) metres."""
+    count = max(1, int(np.ceil(mesh.area / spacing_m**2)))
+    points, _ = trimesh.sample.sample_surface(mesh, count, seed=seed)
+    return np.asarray(points)
 
 
 def _seen_surface(surface_m: np.ndarray, views: list[RgbdView], camera, tolerance_m: float = 0.01) -> np.ndarray:
@@ -66,7 +72,7 @@ def test_tsdf_mesh_lies_on_the_true_surface(sequence_views):
     assert len(views) == 10
     mesh = fuse_tsdf_mesh(views, camera, MeshConfig(voxel_size_m=0.01, truncation_m=0.04, max_depth_m=MAX_DEPTH_M))
     truth = _seen_surface(make_room_scene(0).sample_surface_m(0.01), views, camera)
-    mesh_points = sample_mesh_surface_m(mesh, 0.005)
+    mesh_points = _sample_mesh_surface_m(mesh, 0.005)
     accuracy_m, _ = cKDTree(truth).query(mesh_points)
     completeness_m, _ = cKDTree(mesh_points).query(truth)
     chamfer_m = 0.5 * (accuracy_m.mean() + completeness_m.mean())

@@ -164,10 +164,3 @@ def convert_mesh(source: Path, target: Path, format: str | None = None) -> trime
     mesh = read_mesh(source)
     write_mesh(target, mesh, format)
     return mesh
-
-
-def sample_mesh_surface_m(mesh: trimesh.Trimesh, spacing_m: float, seed: int = 0) -> np.ndarray:
-    """About one point per ``spacing_m`` squared of surface, uniformly at random, (N, 3) metres."""
-    count = max(1, int(np.ceil(mesh.area / spacing_m**2)))
-    points, _ = trimesh.sample.sample_surface(mesh, count, seed=seed)
-    return np.asarray(points)
