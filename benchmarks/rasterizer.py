@@ -78,10 +78,10 @@ def build_scene(data: Path, count: int, width: int, seed: int = 0):
         world_from_camera = sequence.ground_truth.world_from_camera[index]
         rows, cols = np.nonzero(frame.depth_m > 0)
         depth = frame.depth_m[rows, cols].astype(np.float64)
-        points_cam = np.stack([(cols - camera.cx) * depth / camera.fx, (rows - camera.cy) * depth / camera.fy, depth], 1)
+        points_cam = camera.backproject(np.stack([cols, rows], 1), depth)
         points.append(points_cam @ world_from_camera[:3, :3].T + world_from_camera[:3, 3])
         colours.append(frame.rgb[rows, cols] / 255.0)
-        radii.append(depth / (0.5 * (camera.fx + camera.fy)))
+        radii.append(depth / camera.mean_focal_px)
     points, colours, radii = np.concatenate(points), np.concatenate(colours), np.concatenate(radii)
     if count > len(points):
         raise SystemExit(f"{count} Gaussians asked, frames {SOURCE_FRAMES} give {len(points)}")

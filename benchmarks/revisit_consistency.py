@@ -52,12 +52,11 @@ def depth_disagreement(first_depth_m: np.ndarray, second_depth_m: np.ndarray, ca
     rows, columns = np.nonzero(first_depth_m > 0)
     rows, columns = rows[::4], columns[::4]
     depth = first_depth_m[rows, columns]
-    points = np.stack([(columns - camera.cx) * depth / camera.fx, (rows - camera.cy) * depth / camera.fy, depth], 1)
+    points = camera.backproject(np.stack([columns, rows], 1), depth)
     moved = transform_points(second_from_first, points)
     in_front = moved[:, 2] > 0.1
     moved = moved[in_front]
-    u = np.round(camera.fx * moved[:, 0] / moved[:, 2] + camera.cx).astype(int)
-    v = np.round(camera.fy * moved[:, 1] / moved[:, 2] + camera.cy).astype(int)
+    u, v = np.round(camera.project(moved)).astype(int).T
     inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
     seen = second_depth_m[v[inside], u[inside]]
     difference = np.abs(seen - moved[inside, 2])[seen > 0]

@@ -1,14 +1,50 @@
-"""Pinhole camera intrinsics, TUM presets and camera files (YAML or ``key value`` text)."""
+"""Pinhole camera intrinsics, the projection they define, TUM presets and camera files (YAML or ``key value`` text).
+
+Pixel convention (OpenCV's): pixel ``(column, row)``'s centre sits at integer coordinates ``u = column, v = row``;
+the image spans ``[-0.5, width - 0.5] x [-0.5, height - 0.5]``. Camera frame: x right, y down, z forward, metres.
+The projection is written once, in :func:`pinhole` (and its inverse :func:`pinhole_ray`), as plain arithmetic
+that numpy arrays, torch tensors and numba scalars all run; ``Camera`` wraps it for arrays, ``pinhole_numba``
+and ``pinhole_inverse_depth_numba`` are its compiled forms for numba kernels.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
 
+import numba
 import numpy as np
 import yaml
 
 from tambridge.errors import CameraConfigError
+
+
+def pinhole(x, y, z, fx, fy, cx, cy):
+    """Pixel ``(u, v)`` of camera-frame coordinates ``x, y, z`` (metres, z > 0): ``u = fx * x / z + cx``.
+
+    Elementwise over numpy arrays, torch tensors or scalars; the result has the dtype arithmetic on the inputs
+    gives. Keep this operation order: the numba kernels and the torch projection must agree bit for bit.
+    """
+    return fx * x / z + cx, fy * y / z + cy
+
+
+def pinhole_inverse_depth(x, y, inverse_z, fx, fy, cx, cy):
+    """:func:`pinhole` with ``1 / z`` given: ``u = fx * x * inverse_z + cx`` (may differ from it in the last bit).
+
+    For the RGB-D residual ``(u, v, 1/z)``, which needs ``1 / z`` anyway.
+    """
+    return fx * x * inverse_z + cx, fy * y * inverse_z + cy
+
+
+def pinhole_ray(u, v, fx, fy, cx, cy):
+    """Camera-frame ``(x, y)`` at depth z = 1 of pixel ``(u, v)``: the inverse of :func:`pinhole`."""
+    return (u - cx) / fx, (v - cy) / fy
+
+
+# The same arithmetic compiled for numba kernels, where a Camera method cannot be called (inlined at numba's IR
+# level, so a kernel computes exactly what it did with the expression written out).
+pinhole_numba = numba.njit(cache=True, inline="always")(pinhole)
+pinhole_inverse_depth_numba = numba.njit(cache=True, inline="always")(pinhole_inverse_depth)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,6 +63,49 @@ class Camera:
     def K(self) -> np.ndarray:
         """3x3 intrinsic matrix, float64."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def mean_focal_px(self) -> float:
+        """``(fx + fy) / 2``, pixels: the one focal length of isotropic footprints (a splat's radius ``f r / z``)."""
+        return 0.5 * (self.fx + self.fy)
+
+    def project(self, points_camera_m: np.ndarray, depth_m: np.ndarray | None = None) -> np.ndarray:
+        """Pixels ``(..., 2)`` of camera-frame points ``(..., 3)`` (metres, z > 0): ``u = fx x / z + cx``.
+
+        ``depth_m`` (...,) is divided by instead of the points' z: a finite stand-in a caller puts in for points
+        behind the camera, which it then masks out. Distortion is ignored (frames are undistorted by the reader).
+        """
+        z = points_camera_m[..., 2] if depth_m is None else depth_m
+        u, v = pinhole(points_camera_m[..., 0], points_camera_m[..., 1], z, self.fx, self.fy, self.cx, self.cy)
+        return np.stack([u, v], axis=-1)
+
+    def project_torch(self, points_camera_m: "torch.Tensor", depth_m: "torch.Tensor | None" = None) -> "torch.Tensor":
+        """Differentiable twin of :meth:`project` for tensors: ``(..., 3)`` -> ``(..., 2)``, same dtype and device."""
+        import torch
+
+        z = points_camera_m[..., 2] if depth_m is None else depth_m
+        u, v = pinhole(points_camera_m[..., 0], points_camera_m[..., 1], z, self.fx, self.fy, self.cx, self.cy)
+        return torch.stack([u, v], dim=-1)
+
+    def backproject(self, pixels_px: np.ndarray, depth_m: np.ndarray | float) -> np.ndarray:
+        """Camera-frame points ``(..., 3)`` (metres) of pixels ``(..., 2)`` at z-depths ``depth_m`` (...,) or one
+        number: ``x = (u - cx) / fx * z``; at depth 1 these are the pixels' rays. Inverse of :meth:`project`."""
+        x, y = pinhole_ray(pixels_px[..., 0], pixels_px[..., 1], self.fx, self.fy, self.cx, self.cy)
+        return np.stack(np.broadcast_arrays(x * depth_m, y * depth_m, depth_m), axis=-1)
+
+    def backproject_torch(self, pixels_px: "torch.Tensor", depth_m: "torch.Tensor") -> "torch.Tensor":
+        """Differentiable twin of :meth:`backproject` for tensors: pixels ``(..., 2)`` and ``depth_m`` (...,) ->
+        ``(..., 3)``, in their dtype and device."""
+        import torch
+
+        x, y = pinhole_ray(pixels_px[..., 0], pixels_px[..., 1], self.fx, self.fy, self.cx, self.cy)
+        return torch.stack([x * depth_m, y * depth_m, depth_m], dim=-1)
+
+    def in_image(self, pixels_px):
+        """Bool mask ``(...,)`` of pixels ``(..., 2)`` (numpy or torch) within the outermost pixel centres,
+        ``0 <= u <= width - 1`` and ``0 <= v <= height - 1`` (NaN is outside)."""
+        u, v = pixels_px[..., 0], pixels_px[..., 1]
+        return (u >= 0) & (u <= self.width - 1) & (v >= 0) & (v <= self.height - 1)
 
     @property
     def has_distortion(self) -> bool:

@@ -1,4 +1,7 @@
-"""SE(3) maths over numpy arrays: the one module where rotations and rigid transforms are converted.
+"""SE(3) maths: the one module where rotations and rigid transforms are converted.
+
+Numpy arrays throughout, with one twin per other array kind where a caller needs it: :func:`exp_se3_torch`
+(differentiable) and :func:`exp_se3_numba` (inside numba kernels).
 
 Tangent vectors are ordered ``(rho, phi)``: translation part first, rotation part second, so that
 ``exp(xi) = [[exp_so3(phi), V(phi) rho], [0, 1]]`` (Barfoot, "State Estimation for Robotics", eq. 7.83).
@@ -6,6 +9,7 @@ Tangent vectors are ordered ``(rho, phi)``: translation part first, rotation par
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -34,6 +38,29 @@ def exp_se3(xi: np.ndarray) -> np.ndarray:
     out = np.eye(4)
     out[:3, :3] = rotation
     out[:3, 3] = v @ rho
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def exp_se3_numba(xi):
+    """:func:`exp_se3` for numba kernels (that one is its reference): twist (6,) float64 -> (4, 4)."""
+    phi_hat = np.zeros((3, 3))
+    phi_hat[0, 1], phi_hat[0, 2], phi_hat[1, 2] = -xi[5], xi[4], -xi[3]
+    phi_hat[1, 0], phi_hat[2, 0], phi_hat[2, 1] = xi[5], -xi[4], xi[3]
+    angle = np.sqrt(xi[3] * xi[3] + xi[4] * xi[4] + xi[5] * xi[5])
+    if angle < 1e-8:
+        rotation = np.eye(3) + phi_hat
+        v = np.eye(3) + 0.5 * phi_hat
+    else:
+        a = np.sin(angle) / angle
+        b = (1.0 - np.cos(angle)) / angle**2
+        c = (1.0 - a) / angle**2
+        phi_hat2 = phi_hat @ phi_hat
+        rotation = np.eye(3) + a * phi_hat + b * phi_hat2
+        v = np.eye(3) + b * phi_hat + c * phi_hat2
+    out = np.eye(4)
+    out[:3, :3] = rotation
+    out[:3, 3] = v @ np.ascontiguousarray(xi[:3])
     return out
 
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from tambridge.geometry import exp_se3, inverse, log_se3, look_at, pose_from_tum, tum_from_pose
+from tambridge.geometry import exp_se3, exp_se3_numba, exp_se3_torch, inverse, log_se3, look_at, pose_from_tum, tum_from_pose
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 0.3, 3.0])
@@ -13,6 +13,17 @@ def test_exp_log_round_trip(angle):
     transform = exp_se3(twist)
     np.testing.assert_allclose(transform[:3, :3] @ transform[:3, :3].T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(log_se3(transform), twist, atol=1e-9)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-3, 0.3, 3.0])
+def test_numba_and_torch_exp_match_numpy(angle):
+    import torch
+
+    rng = np.random.default_rng(2)
+    axis = rng.normal(size=3)
+    twist = np.concatenate([rng.normal(size=3), axis / np.linalg.norm(axis) * angle])
+    np.testing.assert_allclose(exp_se3_numba(twist), exp_se3(twist), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(exp_se3_torch(torch.from_numpy(twist)).numpy(), exp_se3(twist), rtol=0, atol=1e-12)
 
 
 def test_exp_matches_matrix_exponential():

@@ -109,7 +109,7 @@ def test_projection_kernel_matches_torch_projection(dtype):
     gaussians = random_gaussians(5000, seed=21, dtype=dtype)
     camera_from_world = camera_from_world_tensor(torch.from_numpy(world_from_camera), None)
     fields = [gaussians.means_m, gaussians.log_radii_m, gaussians.opacity_logits, gaussians.rgb]
-    packed = cpu_kernel.project(*(field.numpy() for field in fields), camera_from_world.numpy(), (camera.fx, camera.fy, camera.cx, camera.cy))
+    packed = cpu_kernel.project(*(field.numpy() for field in fields), camera_from_world.numpy(), camera)
     screen = project_to_screen(gaussians, camera_frame_means(gaussians, torch.from_numpy(world_from_camera)), camera)
     assert packed.dtype == gaussians.means_m.numpy().dtype
     assert (screen.depths_m <= 0.01).any()  # behind the near plane: the stand-in depth, no inf or NaN

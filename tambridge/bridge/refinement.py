@@ -76,11 +76,7 @@ def reprojection_error_px(
     if not bool(in_front.any()):
         return torch.zeros((), dtype=torch.float64, device=points_cam.device)
     points_cam, observed = points_cam[in_front], keypoints_px[in_front].to(torch.float64)
-    projected = torch.stack(
-        [camera.fx * points_cam[:, 0] / points_cam[:, 2] + camera.cx, camera.fy * points_cam[:, 1] / points_cam[:, 2] + camera.cy],
-        dim=1,
-    )
-    return (projected - observed).norm(dim=1).mean()
+    return (camera.project_torch(points_cam) - observed).norm(dim=1).mean()
 
 
 @dataclasses.dataclass

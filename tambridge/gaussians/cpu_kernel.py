@@ -34,6 +34,7 @@ import math
 import numba
 import numpy as np
 
+from tambridge.camera import Camera, pinhole_numba
 from tambridge.gaussians.model import ALPHA_MAX, NEAR_PLANE_M, SIGMA_CUTOFF, TRANSMITTANCE_MIN
 
 TILE_PX = 32
@@ -121,8 +122,7 @@ def _project(means_m, log_radii_m, opacity_logits, rgb, camera_from_world, scala
         camera_y = ((x * m[1, 0] + y * m[1, 1]) + z * m[1, 2]) + m[1, 3]
         depth = ((x * m[2, 0] + y * m[2, 1]) + z * m[2, 2]) + m[2, 3]
         safe_depth = depth if depth > NEAR_PLANE_M else one
-        packed[i, U] = fx * camera_x / safe_depth + cx
-        packed[i, V] = fy * camera_y / safe_depth + cy
+        packed[i, U], packed[i, V] = pinhole_numba(camera_x, camera_y, safe_depth, fx, fy, cx, cy)
         packed[i, RADIUS] = focal * math.exp(log_radii_m[i]) / safe_depth
         packed[i, DEPTH] = depth
         packed[i, OPACITY] = one / (one + math.exp(-opacity_logits[i]))
@@ -136,21 +136,21 @@ def project(
     opacity_logits: np.ndarray,
     rgb: np.ndarray,
     camera_from_world: np.ndarray,
-    intrinsics: tuple[float, float, float, float],
+    camera: Camera,
 ) -> np.ndarray:
     """Packed screen-space rows (N, PACKED_COLUMNS) of N Gaussians in one parallel pass, for renders that need
     no gradients: the fast twin of :func:`tambridge.gaussians.model.camera_frame_means` and
     :func:`~tambridge.gaussians.model.project_to_screen`.
 
     means_m (N, 3) world frame, log_radii_m (N,), opacity_logits (N,), rgb (N, 3): all float32 or all float64,
-    which is also the dtype of the rows and of the arithmetic. camera_from_world: (4, 4). intrinsics: (fx, fy, cx,
-    cy) pixels. The operations are torch's, in its order and dtype, so that the depths (and with them the
+    which is also the dtype of the rows and of the arithmetic. camera_from_world: (4, 4). camera: the pinhole
+    intrinsics. The operations are torch's, in its order and dtype, so that the depths (and with them the
     front-to-back order, ties included) and the means are bit-identical to the torch projection's; the radius and
     opacity go through libm's exp instead of torch's and may differ in the last bit.
     """
     dtype = means_m.dtype
-    fx, fy, cx, cy = intrinsics
-    scalars = np.array([fx, fy, cx, cy, 0.5 * (fx + fy), 1.0], dtype)  # Python scalars as torch casts them
+    # Python scalars as torch casts them
+    scalars = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.mean_focal_px, 1.0], dtype)
     packed = np.empty((means_m.shape[0], PACKED_COLUMNS), dtype)
     _project(means_m, log_radii_m, opacity_logits, rgb, camera_from_world.astype(dtype), scalars, packed)
     return packed

@@ -58,9 +58,7 @@ def backproject(depth_m: torch.Tensor, camera: Camera, mask: torch.Tensor) -> to
     """(M, 3) camera-frame points of the pixels where ``mask`` (H, W) holds, from ``depth_m`` (H, W), in mask's row-major order."""
     rows, columns = torch.nonzero(mask, as_tuple=True)
     z = depth_m[rows, columns]
-    x = (columns.to(z.dtype) - camera.cx) / camera.fx * z
-    y = (rows.to(z.dtype) - camera.cy) / camera.fy * z
-    return torch.stack([x, y, z], dim=1)
+    return camera.backproject_torch(torch.stack([columns, rows], dim=1).to(z.dtype), z)
 
 
 def surface_depth_m(depth_m: torch.Tensor, silhouette: torch.Tensor) -> torch.Tensor:
@@ -259,9 +257,8 @@ class GaussianMap:
         else:
             mask = densify_mask(images.depth_m, rendered, self.config.densify_silhouette, self.config.densify_depth_factor)
         points = backproject(images.depth_m, camera, mask)
-        focal = 0.5 * (camera.fx + camera.fy)
         colours = images.rgb[mask] if exposure is None else exposure.invert(images.rgb[mask]).clamp(0.0, 1.0)
-        self.add(anchor_id, points, colours, points[:, 2] / focal)
+        self.add(anchor_id, points, colours, points[:, 2] / camera.mean_focal_px)
         return int(points.shape[0])
 
     def unexplained_fraction(self, camera: Camera, world_from_camera: np.ndarray, depth_m: torch.Tensor) -> float:
@@ -285,7 +282,7 @@ class GaussianMap:
             opacity = torch.sigmoid(self._params["opacity_logits"])
             means_camera = camera_frame_means(self.gaussians(), torch.as_tensor(np.asarray(world_from_camera, np.float64)))
             depth = means_camera[:, 2].clamp(min=1e-3)
-            radius_px = 0.5 * (camera.fx + camera.fy) * torch.exp(self._params["log_radii_m"]) / depth
+            radius_px = camera.mean_focal_px * torch.exp(self._params["log_radii_m"]) / depth
             oversized = (means_camera[:, 2] > 0) & (radius_px > self.config.prune_radius_px)
             kept = (opacity >= self.config.tau) & ~oversized
         removed = len(self) - int(kept.sum())

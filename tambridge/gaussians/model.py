@@ -127,14 +127,9 @@ def project_to_screen(gaussians: GaussianTensors, means_cam_m: torch.Tensor, cam
     # Behind-the-near-plane Gaussians get a stand-in depth of 1 so that nothing here is inf or NaN (a NaN
     # would leak into the gradients through the chain rule even though the rasteriser skips them).
     safe_depths = torch.where(depths > NEAR_PLANE_M, depths, torch.ones_like(depths))
-    focal = 0.5 * (camera.fx + camera.fy)
-    means_px = torch.stack(
-        [camera.fx * means_cam_m[:, 0] / safe_depths + camera.cx, camera.fy * means_cam_m[:, 1] / safe_depths + camera.cy],
-        dim=1,
-    )
     return ScreenGaussians(
-        means_px=means_px,
-        radii_px=focal * torch.exp(gaussians.log_radii_m) / safe_depths,
+        means_px=camera.project_torch(means_cam_m, safe_depths),
+        radii_px=camera.mean_focal_px * torch.exp(gaussians.log_radii_m) / safe_depths,
         depths_m=depths,
         opacity=torch.sigmoid(gaussians.opacity_logits),
         rgb=gaussians.rgb,

@@ -96,8 +96,7 @@ def render_cpu_untracked(
     storage = torch.float64 if dtype == torch.float64 else torch.float32
     fields = (gaussians.means_m, gaussians.log_radii_m, gaussians.opacity_logits, gaussians.rgb)
     arrays = [field.detach().to("cpu", storage).contiguous().numpy() for field in fields]
-    intrinsics = (camera.fx, camera.fy, camera.cx, camera.cy)
-    packed = cpu_kernel.project(*arrays, camera_from_world.detach().cpu().numpy(), intrinsics)
+    packed = cpu_kernel.project(*arrays, camera_from_world.detach().cpu().numpy(), camera)
     bins = cpu_kernel.bin_tiles(packed, camera.width, camera.height, with_slots=False)
     background = np.asarray(background_rgb, np.float64)
     maps = cpu_kernel.composite_forward(bins, camera.width, camera.height, background, packed.dtype)[:3]

@@ -41,7 +41,7 @@ class ColourToDepth:
         # Each depth pixel's ray rotated into the colour frame, computed once: per frame only z scales it.
         camera = self.depth_camera
         rows, cols = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
-        rays = np.stack([(cols - camera.cx) / camera.fx, (rows - camera.cy) / camera.fy, np.ones_like(cols)], -1)
+        rays = camera.backproject(np.stack([cols, rows], -1), 1.0)
         object.__setattr__(self, "_rotated_rays", (rays @ self.colour_from_depth[:3, :3].T).astype(np.float32))
 
     def colour_maps(self, lookup_depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -52,7 +52,9 @@ class ColourToDepth:
         camera = self.colour_camera
         if camera.has_distortion:
             x, y = distort_normalised(x, y, camera.distortion)
-        return (camera.fx * x + camera.cx).astype(np.float32), (camera.fy * y + camera.cy).astype(np.float32)
+        # The distorted normalised coordinates are a point at z = 1, which the pinhole projection takes to pixels.
+        pixels = camera.project(np.stack([x, y, np.ones_like(x)], -1)).astype(np.float32)
+        return pixels[..., 0], pixels[..., 1]
 
     def colour_in_depth_camera(self, colour: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
         """(H, W, 3) uint8 ``colour`` (colour camera) resampled onto the depth camera's pixels by ``depth_m`` (H, W).
@@ -83,8 +85,7 @@ class ColourToDepth:
         camera = self.colour_camera
         inside = np.ones((self.depth_camera.height, self.depth_camera.width), bool)
         for depth in VALID_REGION_DEPTHS_M:
-            map_x, map_y = self.colour_maps(np.full(inside.shape, depth, np.float32))
-            inside &= (map_x >= 0) & (map_x <= camera.width - 1) & (map_y >= 0) & (map_y <= camera.height - 1)
+            inside &= camera.in_image(np.stack(self.colour_maps(np.full(inside.shape, depth, np.float32)), -1))
         return inside
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from tambridge.camera import pinhole_numba
+
 
 @numba.njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
 def resample_colour(
@@ -41,8 +43,8 @@ def resample_colour(
                 radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
                 x, y = (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
                         y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
-            u = np.float32(fx * x + cx)
-            v = np.float32(fy * y + cy)
+            u, v = pinhole_numba(x, y, np.float32(1.0), fx, fy, cx, cy)  # (x, y) is a point at z = 1
+            u, v = np.float32(u), np.float32(v)
             if not (u >= 0 and u <= u_max and v >= 0 and v <= v_max):
                 out[row, column, 0] = 0
                 out[row, column, 1] = 0

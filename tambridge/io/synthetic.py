@@ -167,9 +167,7 @@ def render(
         colour = colour.reshape(height, k, width, k, 3).mean(axis=(1, 3))
         return colour.astype(np.float32), np.ascontiguousarray(depth_m[k // 2 :: k, k // 2 :: k])
     columns, rows = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
-    rays_camera = np.stack(
-        [(columns - camera.cx) / camera.fx, (rows - camera.cy) / camera.fy, np.ones_like(columns)], axis=-1
-    ).reshape(-1, 3)
+    rays_camera = camera.backproject(np.stack([columns, rows], axis=-1), 1.0).reshape(-1, 3)
     rays_world = rays_camera @ world_from_camera[:3, :3].T  # z-component 1 in the camera: t is z-depth
     origin = world_from_camera[:3, 3]
     best_t = np.full(len(rays_world), np.inf)

@@ -242,10 +242,8 @@ class MappingStage:
         overlaps = []
         for view in self.views:
             points_view = transform_points(inverse(self.view_pose(view)), points_world)
-            z = np.maximum(points_view[:, 2], 1e-6)
-            u = self.camera.fx * points_view[:, 0] / z + self.camera.cx
-            v = self.camera.fy * points_view[:, 1] / z + self.camera.cy
-            inside = (points_view[:, 2] > 0) & (u >= 0) & (u <= self.camera.width - 1) & (v >= 0) & (v <= self.camera.height - 1)
+            pixels = self.camera.project(points_view, np.maximum(points_view[:, 2], 1e-6))
+            inside = (points_view[:, 2] > 0) & self.camera.in_image(pixels)
             overlaps.append(float(inside.mean()))
         order = np.argsort(overlaps)[::-1][: self.config.mapper.window_size - 1]
         return [self.views[i] for i in order if overlaps[i] > 0]

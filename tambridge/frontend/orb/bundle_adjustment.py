@@ -17,6 +17,7 @@ import numpy as np
 import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
+from tambridge.camera import pinhole_inverse_depth_numba
 from tambridge.frontend.orb.reprojection import (
     MIN_DEPTH_M,
     chi2_thresholds,
@@ -94,8 +95,9 @@ def _observation_residual(rotation, translation, point, observation, fx, fy, cx,
     y = rotation[1, 0] * point[0] + rotation[1, 1] * point[1] + rotation[1, 2] * point[2] + translation[1]
     z = rotation[2, 0] * point[0] + rotation[2, 1] * point[1] + rotation[2, 2] * point[2] + translation[2]
     inv_z = 1.0 / z if z > MIN_DEPTH_M else 1.0
-    r0 = fx * x * inv_z + cx - observation[0]
-    r1 = fy * y * inv_z + cy - observation[1]
+    u, v = pinhole_inverse_depth_numba(x, y, inv_z, fx, fy, cx, cy)
+    r0 = u - observation[0]
+    r1 = v - observation[1]
     r2 = inv_z - observation[2] if observation[2] == observation[2] else 0.0  # NaN: no depth
     return x, y, z, r0, r1, r2
 

@@ -180,8 +180,5 @@ def lift_keypoints(
                         np.clip(columns[:, None, None] + offsets[None, None, :], 0, camera.width - 1)].reshape(len(depth), -1)
         span = patch.max(axis=1) - patch.min(axis=1)
         depth[(patch.min(axis=1) <= 0) | ~(span <= edge_ratio * depth)] = 0.0
-    points = np.stack(
-        [(keypoints_px[:, 0] - camera.cx) / camera.fx * depth, (keypoints_px[:, 1] - camera.cy) / camera.fy * depth, depth],
-        axis=1,
-    )
+    points = camera.backproject(keypoints_px, depth)
     return FrameFeatures(keypoints_px, octaves, np.ascontiguousarray(descriptors), depth, points, rgb[rows, columns].copy())

@@ -12,7 +12,7 @@ import dataclasses
 import numba
 import numpy as np
 
-from tambridge.camera import Camera
+from tambridge.camera import Camera, pinhole_numba
 from tambridge.frontend.orb.matching import KeypointGrid, match_descriptors, search_by_projection
 from tambridge.frontend.orb.features import FrameFeatures
 from tambridge.frontend.orb.pose_estimation import refine_camera_from_world, solve_pnp_ransac
@@ -51,8 +51,7 @@ def _project_visible_kernel(positions_m, normals, min_distance_m, max_distance_m
         z = positions_m[p, 0] * rotation[2, 0] + positions_m[p, 1] * rotation[2, 1] + positions_m[p, 2] * rotation[2, 2] + translation[2]
         if not z > 1e-6:
             continue
-        u = fx * x / z + cx
-        v = fy * y / z + cy
+        u, v = pinhole_numba(x, y, z, fx, fy, cx, cy)
         if not (u >= 0 and u <= width - 1 and v >= 0 and v <= height - 1):
             continue
         ox, oy, oz = positions_m[p, 0] - centre[0], positions_m[p, 1] - centre[1], positions_m[p, 2] - centre[2]
@@ -96,21 +95,19 @@ def project_visible_reference(
     positions = points.positions_m[point_ids]
     points_camera = positions @ camera_from_world[:3, :3].T + camera_from_world[:3, 3]
     z = points_camera[:, 2]
-    safe_z = np.where(z > 1e-6, z, 1.0)
-    u = camera.fx * points_camera[:, 0] / safe_z + camera.cx
-    v = camera.fy * points_camera[:, 1] / safe_z + camera.cy
+    projected = camera.project(points_camera, np.where(z > 1e-6, z, 1.0))
     centre = inverse(camera_from_world)[:3, 3]
     offsets = positions - centre
     distance = np.linalg.norm(offsets, axis=1)
     viewing_cos = np.einsum("ni,ni->n", offsets, points.normals[point_ids]) / np.maximum(distance, 1e-9)
     visible = (
-        (z > 1e-6) & (u >= 0) & (u <= camera.width - 1) & (v >= 0) & (v <= camera.height - 1)
+        (z > 1e-6) & camera.in_image(projected)
         & (distance >= 0.8 * points.min_distance_m[point_ids]) & (distance <= 1.2 * points.max_distance_m[point_ids])
         & (viewing_cos >= VIEWING_COS_MIN)
     )
     ratio = points.max_distance_m[point_ids[visible]] / np.maximum(distance[visible], 1e-9)
     octaves = np.clip(np.ceil(np.log(np.maximum(ratio, 1e-9)) / np.log(config.scale_factor)), 0, config.n_levels - 1).astype(np.int64)
-    return point_ids[visible], np.column_stack([u[visible], v[visible]]), octaves
+    return point_ids[visible], projected[visible], octaves
 
 
 def match_map_points(

@@ -6,6 +6,7 @@ import cv2
 import numba
 import numpy as np
 
+from tambridge.camera import pinhole_inverse_depth_numba
 from tambridge.frontend.orb.reprojection import (
     MIN_DEPTH_M,
     chi2_thresholds,
@@ -16,7 +17,7 @@ from tambridge.frontend.orb.reprojection import (
     residuals,
     row_weights,
 )
-from tambridge.geometry import exp_se3, orthonormalised, transform_points
+from tambridge.geometry import exp_se3, exp_se3_numba, orthonormalised, transform_points
 
 
 
@@ -65,8 +66,9 @@ def _pose_normal_equations(rotation, translation, points_world, observations, we
         if z <= MIN_DEPTH_M:
             continue
         inv_z = 1.0 / z
-        r0 = fx * x * inv_z + cx - observations[i, 0]
-        r1 = fy * y * inv_z + cy - observations[i, 1]
+        u, v = pinhole_inverse_depth_numba(x, y, inv_z, fx, fy, cx, cy)
+        r0 = u - observations[i, 0]
+        r1 = v - observations[i, 1]
         r2 = inv_z - observations[i, 2] if weights[i, 2] > 0 else 0.0
         value = weights[i, 0] * r0 * r0 + weights[i, 1] * r1 * r1 + weights[i, 2] * r2 * r2
         chi2[i] = value
@@ -129,29 +131,6 @@ def pose_normal_equations_reference(camera_from_world, points_world, observation
 
 
 @numba.njit(cache=True, nogil=True)
-def _exp_se3(xi):
-    """:func:`tambridge.geometry.exp_se3` inside the kernel below (that one is its reference)."""
-    phi_hat = np.zeros((3, 3))
-    phi_hat[0, 1], phi_hat[0, 2], phi_hat[1, 2] = -xi[5], xi[4], -xi[3]
-    phi_hat[1, 0], phi_hat[2, 0], phi_hat[2, 1] = xi[5], -xi[4], xi[3]
-    angle = np.sqrt(xi[3] * xi[3] + xi[4] * xi[4] + xi[5] * xi[5])
-    if angle < 1e-8:
-        rotation = np.eye(3) + phi_hat
-        v = np.eye(3) + 0.5 * phi_hat
-    else:
-        a = np.sin(angle) / angle
-        b = (1.0 - np.cos(angle)) / angle**2
-        c = (1.0 - a) / angle**2
-        phi_hat2 = phi_hat @ phi_hat
-        rotation = np.eye(3) + a * phi_hat + b * phi_hat2
-        v = np.eye(3) + b * phi_hat + c * phi_hat2
-    out = np.eye(4)
-    out[:3, :3] = rotation
-    out[:3, 3] = v @ np.ascontiguousarray(xi[:3])
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
 def _refine_camera_from_world_kernel(camera_from_world, points_world, observations, weights, thresholds, rounds,
                                      iterations, fx, fy, cx, cy):
     n = points_world.shape[0]
@@ -169,7 +148,7 @@ def _refine_camera_from_world_kernel(camera_from_world, points_world, observatio
                 delta = -np.linalg.solve(hessian + 1e-9 * np.eye(6), gradient)
             except Exception:  # noqa: BLE001 - numba catches no narrower class; a singular system ends the round
                 break
-            camera_from_world = _exp_se3(delta) @ camera_from_world
+            camera_from_world = exp_se3_numba(delta) @ camera_from_world
             if np.sqrt((delta * delta).sum()) < 1e-6:
                 break
         chi2 = _pose_normal_equations(

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from tambridge.camera import pinhole_inverse_depth
+
 # Points nearer the camera plane than this (metres, camera z) are treated as behind it: no residual, chi2 = inf.
 MIN_DEPTH_M = 1e-3
 # chi-square 95% quantiles for 2 and 3 degrees of freedom: outlier thresholds (ORB-SLAM).
@@ -34,8 +36,7 @@ def rgbd_observations(keypoints_px: np.ndarray, depth_m: np.ndarray) -> np.ndarr
 def project_rgbd(points_camera: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Predicted ``(u, v, 1/z)`` (N, 3) of camera-frame points (N, 3) with positive z."""
     inv_z = 1.0 / points_camera[:, 2]
-    u = K[0, 0] * points_camera[:, 0] * inv_z + K[0, 2]
-    v = K[1, 1] * points_camera[:, 1] * inv_z + K[1, 2]
+    u, v = pinhole_inverse_depth(points_camera[:, 0], points_camera[:, 1], inv_z, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     return np.column_stack([u, v, inv_z])
 
 
