@@ -1,41 +1,52 @@
 """Checkpoints of a ``reconstruct`` run, so that ``--resume`` continues a killed run from its last one.
 
-A checkpoint is one pickle, ``<output>/checkpoint/checkpoint.pkl``, written atomically (temp file + rename), so a
-run killed while writing one leaves the previous checkpoint whole. It holds the state dicts of the stateful
+A checkpoint is one numpy archive, ``<output>/checkpoint/checkpoint.npz``, written atomically (temp file + rename),
+so a run killed while writing one leaves the previous checkpoint whole. It holds the state dicts of the stateful
 classes (the frontend's sparse map, keyframe database, motion model and frame records; the mapping stage's
 Gaussian map with its Adam state, views and random generator), the index of the next frame to track, the run's
 counters and timings, and what it was made from: the resolved config and a fingerprint of the sequence, which a
 resumed run must match. Threads, locks and what a constructor rebuilds from the config (ORB extractor,
-vocabulary) are not saved; every object in one checkpoint is pickled in a single pass, so objects shared between
-them (a keyframe and the frontend's reference to it) stay shared after loading.
+vocabulary) are not saved.
 
-Pickle runs code when it loads: resume only from checkpoints your own runs wrote.
+The archive holds only plain arrays (loaded with ``allow_pickle=False``) and one JSON document, ``document``, with
+the format name, :data:`CHECKPOINT_VERSION` and the state as a tree (:func:`tambridge.state.encode_state`) that
+names the arrays. Loading builds objects only of the types in :func:`state_types`, so no checkpoint, crafted or
+not, runs code when it loads. Everything is encoded in one pass, so objects shared between the states (a keyframe
+and the frontend's reference to it) stay shared after loading.
 """
 
 from __future__ import annotations
 
-import copyreg
 import dataclasses
+import functools
 import hashlib
+import json
 import logging
-import pickle
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from tambridge.errors import CheckpointError
-from tambridge.state import dotted_items
 from tambridge.files import atomic_path
+from tambridge.io.tum import read_file_list
+from tambridge.state import StateCodec, StateTypes, decode_state, dotted_items, encode_state
 
 logger = logging.getLogger("tambridge.checkpoint")
 
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
 """Bumped whenever what a checkpoint holds changes; a checkpoint of another version is refused."""
+CHECKPOINT_FORMAT = "tambridge checkpoint"
 CHECKPOINT_FOLDER = "checkpoint"
-CHECKPOINT_NAME = "checkpoint.pkl"
+CHECKPOINT_NAME = "checkpoint.npz"
+PICKLE_CHECKPOINT_NAME = "checkpoint.pkl"
+"""Where tambridge before checkpoint version 2 wrote its (pickled) checkpoints; never read, only named in errors."""
+DOCUMENT_ARRAY = "document"
+"""The archive member holding the JSON document (UTF-8 bytes as a uint8 array)."""
 IGNORED_CONFIG_SECTIONS = ("checkpoint",)
 """Config sections a resumed run may change: how often it checkpoints does not change its results."""
+SEQUENCE_INDEX_FILES = ("rgb.txt", "depth.txt", "groundtruth.txt")
+"""The files of a sequence folder that say which frames it has (:func:`tambridge.io.tum.open_sequence` reads them)."""
 
 
 @dataclasses.dataclass
@@ -69,91 +80,208 @@ def checkpoint_path(output_dir: Path) -> Path:
     return Path(output_dir) / CHECKPOINT_FOLDER / CHECKPOINT_NAME
 
 
+def _start_over(path: Path) -> str:
+    return f"run without --resume to start over (or delete {path.parent}/)"
+
+
 # ---- the sequence ---------------------------------------------------------------------------------------------
 
 
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _sample_frame_files(folder: Path, timestamps_s: np.ndarray) -> list[Path]:
+    """The colour and depth image files of the first, middle and last of the frames at ``timestamps_s``, as the
+    folder's rgb.txt and depth.txt list them (each the entry nearest in time); none without those lists."""
+    if not len(timestamps_s) or not (folder / "rgb.txt").is_file() or not (folder / "depth.txt").is_file():
+        return []
+    files = []
+    for listing in (read_file_list(folder / "rgb.txt"), read_file_list(folder / "depth.txt")):
+        stamps = np.array([stamp for stamp, _ in listing])
+        for stamp in timestamps_s[sorted({0, len(timestamps_s) // 2, len(timestamps_s) - 1})]:
+            files.append(folder / listing[int(np.argmin(np.abs(stamps - stamp)))][1])
+    return files
+
+
 def sequence_fingerprint(folder: Path, timestamps_s: np.ndarray, sensor: object) -> dict:
-    """What identifies the frames a run reads: folder, frame count, a hash of the timestamps, the sensor (camera,
-    depth encoding and, for unregistered colour, the colour camera: a resumed run must resample colour alike)."""
+    """What identifies the frames a run reads: the resolved folder, frame count, a hash of the timestamps, the
+    sensor (camera, depth encoding and, for unregistered colour, the colour camera: a resumed run must resample
+    colour alike), and SHA-256 of the folder's index files (:data:`SEQUENCE_INDEX_FILES`, those it has) and of the
+    colour and depth images of the first, middle and last frame (``files_sha256``, by path in the folder)."""
+    folder = Path(folder).resolve()
     timestamps = np.ascontiguousarray(np.asarray(timestamps_s, np.float64))
+    files = [folder / name for name in SEQUENCE_INDEX_FILES if (folder / name).is_file()]
+    files += _sample_frame_files(folder, timestamps)
     return {
-        "folder": str(Path(folder).resolve()),
+        "folder": str(folder),
         "frames": int(len(timestamps)),
         "timestamps_sha1": hashlib.sha1(timestamps.tobytes()).hexdigest(),
         "camera": repr(sensor),
+        "files_sha256": {str(path.relative_to(folder)): _sha256(path) if path.is_file() else "missing"
+                         for path in files},
     }
+
+
+def _sequence_differences(saved: dict, current: dict) -> list[str]:
+    """What differs between two :func:`sequence_fingerprint`, in words."""
+    differences = []
+    if saved.get("folder") != current["folder"]:
+        differences.append(f"folder {saved.get('folder')}, now {current['folder']}")
+    if saved.get("frames") != current["frames"]:
+        differences.append(f"{saved.get('frames')} frames, now {current['frames']}")
+    elif saved.get("timestamps_sha1") != current["timestamps_sha1"]:
+        differences.append("other frame timestamps")
+    if saved.get("camera") != current["camera"]:
+        differences.append(f"camera {saved.get('camera')}, now {current['camera']}")
+    saved_files = saved.get("files_sha256")
+    saved_files = saved_files if type(saved_files) is dict else {}
+    changed = sorted(name for name in saved_files.keys() | current["files_sha256"].keys()
+                     if saved_files.get(name) != current["files_sha256"].get(name))
+    if changed:
+        differences.append(f"other {', '.join(changed[:4])}{', ...' if len(changed) > 4 else ''}")
+    return differences
+
+
+# ---- what a checkpoint may hold -------------------------------------------------------------------------------
+
+
+def _generator_parts(generator: np.random.Generator) -> dict:
+    return {"bit_generator": generator.bit_generator.state}
+
+
+def _generator(parts: dict) -> np.random.Generator:
+    state = parts["bit_generator"]
+    if type(state) is not dict or state.get("bit_generator") != "PCG64":
+        raise ValueError("a random generator that is not numpy's default PCG64")
+    generator = np.random.Generator(np.random.PCG64())
+    generator.bit_generator.state = state
+    return generator
+
+
+def _image_array(value: object) -> np.ndarray:
+    """``value`` checked to be an image Open3D can hold, as a contiguous array."""
+    if type(value) is not np.ndarray or value.dtype not in (np.uint8, np.uint16, np.float32) \
+            or value.ndim not in (2, 3) or not value.size:
+        raise ValueError("an Open3D image that is not a non-empty (H, W) or (H, W, C) uint8, uint16 or float32 array")
+    return np.ascontiguousarray(value)
+
+
+@functools.cache
+def state_types() -> StateTypes:
+    """Every type a checkpoint may hold beyond the built-in ones, and so the only types loading one creates."""
+    # Imported here: the stages import the config, which imports this module.
+    import open3d as o3d
+
+    from tambridge.bridge.refinement import RefinementResult
+    from tambridge.bridge.view import MappingView
+    from tambridge.bridge.view_selection import Selection
+    from tambridge.frontend.open3d.frontend import _Keyframe as Open3dKeyframe
+    from tambridge.frontend.orb.features import FrameFeatures
+    from tambridge.frontend.orb.frontend import _FrameRecord
+    from tambridge.frontend.orb.loop_closing import LoopConsistency
+    from tambridge.frontend.orb.slam_map import Keyframe, MapPoints, SlamMap
+    from tambridge.frontend.orb.vocabulary import KeyframeDatabase
+    from tambridge.frontend.pose_graph import PoseEdge
+    from tambridge.gaussians.mapper import ViewExposure, ViewImages
+
+    cloud_parts = ("points", "colors", "normals")
+
+    def cloud(parts: dict) -> o3d.geometry.PointCloud:
+        value = o3d.geometry.PointCloud()
+        for name, points in parts.items():
+            if name not in cloud_parts or type(points) is not np.ndarray or points.dtype != np.float64 \
+                    or points.ndim != 2 or points.shape[1] != 3:
+                raise ValueError(f"an Open3D point cloud with {name} that are not (N, 3) float64")
+            setattr(value, name, o3d.utility.Vector3dVector(points))
+        return value
+
+    def rgbd(parts: dict) -> o3d.geometry.RGBDImage:
+        value = o3d.geometry.RGBDImage()
+        value.color, value.depth = (o3d.geometry.Image(_image_array(parts[name])) for name in ("color", "depth"))
+        return value
+
+    return StateTypes(
+        records=(Keyframe, FrameFeatures, MapPoints, SlamMap, KeyframeDatabase, LoopConsistency, _FrameRecord,
+                 Open3dKeyframe, PoseEdge, MappingView, RefinementResult, ViewImages),
+        enums=(Selection,),
+        codecs=(
+            StateCodec(ViewExposure, ViewExposure.state_dict, ViewExposure.from_state_dict),
+            StateCodec(np.random.Generator, _generator_parts, _generator),
+            StateCodec(o3d.geometry.PointCloud, lambda value: {name: np.asarray(getattr(value, name)) for name in
+                                                               cloud_parts if len(getattr(value, name))}, cloud),
+            StateCodec(o3d.geometry.RGBDImage, lambda value: {"color": np.asarray(value.color),
+                                                              "depth": np.asarray(value.depth)}, rgbd),
+        ),
+    )
 
 
 # ---- files ----------------------------------------------------------------------------------------------------
 
-
-def _reduce_open3d(kind: str, arrays: dict[str, np.ndarray]):
-    return _rebuild_open3d, (kind, arrays)
-
-
-def _rebuild_open3d(kind: str, arrays: dict[str, np.ndarray]):
-    import open3d as o3d
-
-    if kind == "PointCloud":
-        cloud = o3d.geometry.PointCloud()
-        for name, values in arrays.items():
-            setattr(cloud, name, o3d.utility.Vector3dVector(values))
-        return cloud
-    if kind == "Image":
-        return o3d.geometry.Image(arrays["data"])
-    rgbd = o3d.geometry.RGBDImage()
-    rgbd.color, rgbd.depth = o3d.geometry.Image(arrays["color"]), o3d.geometry.Image(arrays["depth"])
-    return rgbd
-
-
-def _open3d_reducers() -> dict[type, Callable]:
-    """Pickle support for the Open3D objects the Open3D frontends keep (their pybind types have none)."""
-    try:
-        import open3d as o3d
-    except ImportError:
-        return {}
-    geometry = o3d.geometry
-
-    def cloud(value):
-        return _reduce_open3d("PointCloud", {name: np.asarray(getattr(value, name)).copy()
-                                             for name in ("points", "colors", "normals") if len(getattr(value, name))})
-
-    return {
-        geometry.PointCloud: cloud,
-        geometry.Image: lambda value: _reduce_open3d("Image", {"data": np.asarray(value).copy()}),
-        geometry.RGBDImage: lambda value: _reduce_open3d(
-            "RGBDImage", {"color": np.asarray(value.color).copy(), "depth": np.asarray(value.depth).copy()}),
-    }
+_FIELD_TYPES = {"next_frame": (int,), "config": (dict,), "sequence": (dict,), "frontend": (dict,),
+                "mapping": (dict, type(None)), "run": (dict,)}
+"""The :class:`Checkpoint` fields stored as the state, with the types a loaded one must have."""
 
 
 def save_checkpoint(path: Path, checkpoint: Checkpoint) -> int:
-    """Write ``checkpoint`` to ``path`` atomically; returns its size in bytes. Pickled straight into the file, so
-    writing one needs no second copy of the state in memory."""
+    """Write ``checkpoint`` to ``path`` atomically; returns its size in bytes. The state's arrays are written as
+    they are, so writing one needs no second copy of the state in memory."""
+    fields = {name: getattr(checkpoint, name) for name in _FIELD_TYPES}
+    fields["next_frame"] = int(checkpoint.next_frame)
+    tree, arrays = encode_state(fields, state_types())
+    document = json.dumps({"format": CHECKPOINT_FORMAT, "version": checkpoint.version, "checkpoint": tree},
+                          separators=(",", ":")).encode()
     with atomic_path(path) as temp_path, open(temp_path, "wb") as handle:
-        pickler = pickle.Pickler(handle, protocol=pickle.HIGHEST_PROTOCOL)
-        pickler.dispatch_table = {**copyreg.dispatch_table, **_open3d_reducers()}
-        pickler.dump(checkpoint)
+        np.savez(handle, allow_pickle=False, **{DOCUMENT_ARRAY: np.frombuffer(document, np.uint8)}, **arrays)
         return handle.tell()
 
 
+def _read_checkpoint(path: Path) -> Checkpoint:
+    with open(path, "rb") as handle:
+        # Checked here, not left to np.load: anything but a zip archive is refused before numpy looks at it.
+        if handle.read(4) != b"PK\x03\x04":
+            raise ValueError("not a numpy .npz archive")
+    with np.load(path, allow_pickle=False) as archive:
+        raw = archive[DOCUMENT_ARRAY]
+        if raw.dtype != np.uint8 or raw.ndim != 1:
+            raise ValueError(f"its {DOCUMENT_ARRAY} is not a byte string")
+        document = json.loads(raw.tobytes())
+        if type(document) is not dict or document.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"no {CHECKPOINT_FORMAT!r} document")
+        version = document.get("version")
+        if version != CHECKPOINT_VERSION:
+            raise CheckpointError(f"{path}: checkpoint version {version}, this tambridge reads version "
+                                  f"{CHECKPOINT_VERSION}; {_start_over(path)}")
+        fields = decode_state(document["checkpoint"], archive, state_types())
+    if type(fields) is not dict or set(fields) != set(_FIELD_TYPES) \
+            or any(type(fields[name]) not in kinds for name, kinds in _FIELD_TYPES.items()):
+        raise ValueError("its state is not that of a run")
+    return Checkpoint(**fields, version=version)
+
+
 def load_checkpoint(path: Path) -> Checkpoint:
-    """Read a checkpoint written by :func:`save_checkpoint`; a :class:`CheckpointError` naming the file otherwise."""
+    """Read a checkpoint written by :func:`save_checkpoint`; a one-line :class:`CheckpointError` naming the file
+    and how to start over when it is missing, truncated, of another version or not a tambridge checkpoint."""
     path = Path(path)
     if not path.is_file():
+        pickled = path.with_name(PICKLE_CHECKPOINT_NAME)
+        if pickled.is_file():
+            raise CheckpointError(f"{pickled}: a checkpoint of an older tambridge, a pickle, which this one never "
+                                  f"loads (loading a pickle can run any code); {_start_over(path)}")
         raise CheckpointError(f"{path}: no checkpoint to resume from; run without --resume, with "
                               f"--set checkpoint.every_keyframes=N (N > 0) so that the run writes checkpoints")
     try:
-        with open(path, "rb") as handle:
-            checkpoint = pickle.load(handle)
-    except Exception as error:  # noqa: BLE001 - any unpickling failure means the same thing to the user
-        raise CheckpointError(f"{path}: not a readable tambridge checkpoint ({type(error).__name__}: {error}); "
-                              f"delete it and run without --resume") from error
-    if not isinstance(checkpoint, Checkpoint):
-        raise CheckpointError(f"{path}: not a tambridge checkpoint; delete it and run without --resume")
-    if checkpoint.version != CHECKPOINT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {checkpoint.version}, this tambridge reads version "
-                              f"{CHECKPOINT_VERSION}; run again without --resume")
-    return checkpoint
+        return _read_checkpoint(path)
+    except CheckpointError:
+        raise
+    except Exception as error:  # noqa: BLE001 - whatever is wrong with the file, the user can only start over
+        reason = " ".join(f"{type(error).__name__}: {error}".split())
+        raise CheckpointError(f"{path}: not a readable tambridge checkpoint ({reason[:300]}); "
+                              f"{_start_over(path)}") from error
 
 
 def check_resumable(path: Path, checkpoint: Checkpoint, config: dict, sequence: dict) -> None:
@@ -170,16 +298,14 @@ def check_resumable(path: Path, checkpoint: Checkpoint, config: dict, sequence: 
                           for key in differing[:5])
         raise CheckpointError(f"{path}: the checkpoint was written with another config ({shown}"
                               f"{', ...' if len(differing) > 5 else ''}); resume with the same options "
-                              f"(see config.yaml beside it) or run without --resume")
-    saved_sequence = checkpoint.sequence
-    if saved_sequence["frames"] != sequence["frames"] or saved_sequence["timestamps_sha1"] != sequence["timestamps_sha1"] \
-            or saved_sequence["camera"] != sequence["camera"]:
-        raise CheckpointError(f"{path}: the checkpoint is of another sequence ({saved_sequence['folder']}, "
-                              f"{saved_sequence['frames']} frames), not of {sequence['folder']} ({sequence['frames']} "
-                              f"frames); resume with the same sequence or run without --resume")
+                              f"(see config.yaml beside it) or {_start_over(path)}")
+    differences = _sequence_differences(checkpoint.sequence, sequence)
+    if differences:
+        raise CheckpointError(f"{path}: the checkpoint is of another sequence ({'; '.join(differences)}); resume with "
+                              f"the same sequence or {_start_over(path)}")
     if checkpoint.next_frame > sequence["frames"]:
         raise CheckpointError(f"{path}: the checkpoint is at frame {checkpoint.next_frame} of a "
-                              f"{sequence['frames']}-frame sequence; run without --resume")
+                              f"{sequence['frames']}-frame sequence; {_start_over(path)}")
 
 
 class KeyframeCheckpoints:

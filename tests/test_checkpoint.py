@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import builtins
+import collections
 import json
+import math
 import os
+import pickle
+import shutil
 import signal
 import subprocess
 import sys
@@ -13,11 +18,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from cli import main
 from pipelines.reconstruct import reconstruct
+from tambridge.bridge.view_selection import Selection
 from tambridge.checkpoint import (
+    CHECKPOINT_VERSION,
     Checkpoint,
     CheckpointError,
     check_resumable,
@@ -25,13 +33,17 @@ from tambridge.checkpoint import (
     load_checkpoint,
     save_checkpoint,
     sequence_fingerprint,
+    state_types,
 )
 from tambridge.config import load_config, to_dict
 from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.frontend.open3d.frontend import Open3dFrontend
 from tambridge.frontend.open3d.odometry import FrameToFrameOdometry
 from tambridge.frontend.orb.frontend import OrbFrontend
+from tambridge.frontend.orb.loop_closing import LoopConsistency
+from tambridge.frontend.pose_graph import PoseEdge
 from tambridge.io.tum import open_sequence
+from tambridge.state import decode_state, encode_state
 
 ROOT = Path(__file__).resolve().parents[1]
 # Inline ORB mapping (deterministic), a light mapper, no mesh: the run is about the state, not the quality.
@@ -101,11 +113,11 @@ def test_resume_refuses_another_config_or_sequence(synthetic_sequence_dir, tmp_p
     sequence = open_sequence(synthetic_sequence_dir)
     fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.sensor)
     config = to_dict(load_config(None, ["checkpoint.every_keyframes=2"]))
-    path = tmp_path / "checkpoint.pkl"
+    path = tmp_path / "checkpoint.npz"
     # How often a run checkpoints may change; everything else must match.
     check_resumable(path, _checkpoint(config, fingerprint), to_dict(load_config(None, ["checkpoint.every_keyframes=7"])),
                     fingerprint)
-    with pytest.raises(CheckpointError, match=r"checkpoint\.pkl: .*another config \(mapper\.iterations: 30 in the checkpoint, 5 now"):
+    with pytest.raises(CheckpointError, match=r"checkpoint\.npz: .*another config \(mapper\.iterations: 30 in the checkpoint, 5 now"):
         check_resumable(path, _checkpoint(config, fingerprint), to_dict(load_config(None, ["mapper.iterations=5"])),
                         fingerprint)
     shorter = open_sequence(synthetic_sequence_dir, max_frames=20)
@@ -116,20 +128,165 @@ def test_resume_refuses_another_config_or_sequence(synthetic_sequence_dir, tmp_p
         check_resumable(path, _checkpoint(config, fingerprint, next_frame=99), config, fingerprint)
 
 
-def test_missing_corrupt_or_foreign_checkpoints_give_clear_errors(tmp_path):
-    path = tmp_path / "checkpoint" / "checkpoint.pkl"
-    with pytest.raises(CheckpointError, match=r"checkpoint\.pkl: no checkpoint to resume from.*every_keyframes"):
+def test_resume_refuses_another_folder_or_content_with_the_same_timestamps(synthetic_sequence_dir, tmp_path):
+    sequence = open_sequence(synthetic_sequence_dir)
+    saved = _checkpoint({}, sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.sensor))
+    path = tmp_path / "out" / "checkpoint" / "checkpoint.npz"
+
+    def refuse(folder: Path, match: str) -> None:
+        other = open_sequence(folder)
+        np.testing.assert_array_equal(other.timestamps_s, sequence.timestamps_s)
+        with pytest.raises(CheckpointError, match=match) as refused:
+            check_resumable(path, saved, {}, sequence_fingerprint(other.folder, other.timestamps_s, other.sensor))
+        assert "\n" not in str(refused.value) and "without --resume" in str(refused.value)
+
+    copy = tmp_path / "copy"
+    shutil.copytree(synthetic_sequence_dir, copy)
+    # A copy is another folder: the same frames, but not the run's input.
+    refuse(copy, rf"another sequence \(folder {synthetic_sequence_dir.resolve()}, now {copy.resolve()}\)")
+    # The same folder with other images at the same timestamps: the last frame's colour changed.
+    saved = _checkpoint({}, sequence_fingerprint(copy, sequence.timestamps_s, sequence.sensor))
+    last_rgb = max((copy / "rgb").iterdir())
+    shutil.copyfile(min((copy / "rgb").iterdir()), last_rgb)
+    refuse(copy, rf"another sequence \(other rgb/{last_rgb.name}\)")
+    # ... or, with the images as they were, its ground truth (an index file) changed.
+    shutil.copyfile(synthetic_sequence_dir / "rgb" / last_rgb.name, last_rgb)
+    check_resumable(path, saved, {}, sequence_fingerprint(copy, sequence.timestamps_s, sequence.sensor))
+    with open(copy / "groundtruth.txt", "a") as handle:
+        handle.write("# edited\n")
+    refuse(copy, r"another sequence \(other groundtruth\.txt\)")
+
+
+def _write_archive(path: Path, document, **arrays) -> None:
+    """An .npz laid out as a checkpoint, with ``document`` (JSON-able, or raw bytes) as its document."""
+    raw = document if isinstance(document, bytes) else json.dumps(document).encode()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, document=np.frombuffer(raw, np.uint8), **arrays)
+
+
+def test_missing_truncated_or_foreign_checkpoints_give_clear_errors(tmp_path):
+    path = checkpoint_path(tmp_path / "out")
+    with pytest.raises(CheckpointError, match=r"checkpoint\.npz: no checkpoint to resume from.*every_keyframes"):
         load_checkpoint(path)
-    path.parent.mkdir()
-    path.write_bytes(b"\x80\x05not a pickle")
-    with pytest.raises(CheckpointError, match=r"checkpoint\.pkl: not a readable tambridge checkpoint"):
+    unreadable = rf"checkpoint\.npz: not a readable tambridge checkpoint \(.*\); run without --resume to start over " \
+                 rf"\(or delete {path.parent}/\)$"
+    path.parent.mkdir(parents=True)
+    path.write_bytes(b"\x80\x05not a checkpoint")
+    with pytest.raises(CheckpointError, match=unreadable):
+        load_checkpoint(path)
+    written = _checkpoint({"mapper": {"iterations": 30}}, {"frames": 3}, next_frame=2)
+    size = save_checkpoint(path, written)
+    assert size == path.stat().st_size
+    whole = path.read_bytes()
+    for length in (len(whole) // 2, len(whole) - 1):
+        path.write_bytes(whole[:length])
+        with pytest.raises(CheckpointError, match=unreadable):
+            load_checkpoint(path)
+    # Some other program's .npz, and a checkpoint whose document is not JSON.
+    np.savez(path, weights=np.zeros(3))
+    with pytest.raises(CheckpointError, match=unreadable):
+        load_checkpoint(path)
+    _write_archive(path, b"{not json")
+    with pytest.raises(CheckpointError, match=unreadable):
         load_checkpoint(path)
     old = _checkpoint({}, {})
     old.version = 0
     save_checkpoint(path, old)
-    with pytest.raises(CheckpointError, match="version 0"):
+    with pytest.raises(CheckpointError, match=rf"checkpoint\.npz: checkpoint version 0, this tambridge reads version "
+                                              rf"{CHECKPOINT_VERSION}; run without --resume"):
         load_checkpoint(path)
-    assert [p.name for p in path.parent.iterdir()] == ["checkpoint.pkl"]  # atomic: no temp file left
+    save_checkpoint(path, written)
+    assert load_checkpoint(path) == written
+    assert [p.name for p in path.parent.iterdir()] == ["checkpoint.npz"]  # atomic: no temp file left
+
+
+class _Payload:
+    """Unpickling this creates ``marker``: what a crafted pickle could do, made visible."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return builtins.open, (str(self.marker), "w")
+
+
+def test_loading_never_runs_code_from_the_file(tmp_path):
+    marker = tmp_path / "payload-ran"
+    payload = pickle.dumps(_Payload(marker))
+    pickle.loads(payload)  # the payload works: unpickled, it makes the marker
+    assert marker.is_file()
+    marker.unlink()
+    out = tmp_path / "out"
+    path = checkpoint_path(out)
+    format_ = {"format": "tambridge checkpoint", "version": CHECKPOINT_VERSION}
+    state = {"$dict": "dict", "items": []}
+    attacks = {
+        "a pickle under the checkpoint's name": lambda: path.write_bytes(payload),
+        "an object array as the document": lambda: np.savez(path, document=np.array([_Payload(marker)], object)),
+        "an object array the document names": lambda: _write_archive(path, {**format_, "checkpoint": {"$array": "a0"}},
+                                                                     a0=np.array([_Payload(marker)], object)),
+        "a type outside the registry": lambda: _write_archive(path, {**format_, "checkpoint": {
+            "$object": "system", "fields": {"command": f"touch {marker}"}}}),
+        "a dict type outside the registry": lambda: _write_archive(path, {**format_, "checkpoint": {
+            "$dict": "defaultdict", "items": []}}),
+        "an enum member that is not one": lambda: _write_archive(path, {**format_, "checkpoint": {
+            "$enum": "Selection", "name": "__class__"}}),
+        "fields that the type does not have": lambda: _write_archive(path, {**format_, "checkpoint": {
+            "$object": "PoseEdge", "fields": {"__reduce__": state}}}),
+    }
+    for attack, write in attacks.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write()
+        with pytest.raises(CheckpointError) as refused:
+            load_checkpoint(path)
+        message = str(refused.value)
+        assert message.startswith(f"{path}: not a readable tambridge checkpoint") and "\n" not in message, attack
+        assert message.endswith(f"run without --resume to start over (or delete {path.parent}/)"), attack
+        assert not marker.exists(), attack
+    # The name older versions wrote their pickles under is never loaded, only named.
+    path.unlink()
+    (path.parent / "checkpoint.pkl").write_bytes(payload)
+    with pytest.raises(CheckpointError, match=r"checkpoint\.pkl: a checkpoint of an older tambridge, a pickle, which "
+                                              r"this one never loads .*run without --resume to start over"):
+        load_checkpoint(path)
+    assert not marker.exists()
+
+
+def test_state_encoding_round_trips_types_and_shared_objects():
+    types = state_types()
+    edge = PoseEdge(0, 1, np.eye(4), np.diag(np.arange(1.0, 7.0)), uncertain=True)
+    consistency = LoopConsistency(3)
+    consistency.groups = [({1, 2}, 1)]
+    pose = np.arange(16.0).reshape(4, 4)
+    weights = torch.linspace(0, 1, 5, dtype=torch.float64).requires_grad_(True)
+    looped = [1]
+    looped.append(looped)
+    state = {"edges": [edge, edge], 7: (1, 2.5, "x", None, True), "pose": pose, "same pose": pose,
+             "float32": np.float32(1.25), "count": np.int64(-3), "flag": np.bool_(True), "nan": float("nan"),
+             "counter": collections.Counter({"SELECTED": 2}), "ordered": collections.OrderedDict([(5, "b"), (2, "a")]),
+             "weights": weights, "steps": torch.arange(4), "selection": Selection.UNCOVERED, "consistency": consistency,
+             "frozen": frozenset({3}), "looped": looped, "empty": np.zeros((0, 3), np.uint8)}
+    tree, arrays = encode_state(state, types)
+    assert sorted(arrays) == ["a0", "a1", "a2", "a3", "a4", "a5"]  # each array once, though the pose is met twice
+    back = decode_state(json.loads(json.dumps(tree)), arrays, types)
+    assert list(back) == list(state)
+    assert back["edges"][0] is back["edges"][1] and back["pose"] is back["same pose"]
+    assert back["looped"][1] is back["looped"]
+    assert back["edges"][0].source == 0 and back["edges"][0].uncertain is True
+    np.testing.assert_array_equal(back["edges"][0].information, edge.information)
+    assert back[7] == (1, 2.5, "x", None, True)
+    assert type(back["float32"]) is np.float32 and back["float32"] == 1.25
+    assert type(back["count"]) is np.int64 and back["count"] == -3 and type(back["flag"]) is np.bool_
+    assert math.isnan(back["nan"])
+    assert type(back["counter"]) is collections.Counter and back["counter"]["SELECTED"] == 2
+    assert type(back["ordered"]) is collections.OrderedDict and list(back["ordered"].items()) == [(5, "b"), (2, "a")]
+    assert back["weights"].requires_grad and back["weights"].dtype == torch.float64
+    assert torch.equal(back["weights"].detach(), weights.detach()) and back["steps"].dtype == torch.int64
+    assert back["selection"] is Selection.UNCOVERED
+    assert type(back["consistency"]) is LoopConsistency and back["consistency"].groups == [({1, 2}, 1)]
+    assert back["frozen"] == frozenset({3}) and back["empty"].shape == (0, 3) and back["empty"].dtype == np.uint8
+    with pytest.raises(TypeError, match=r"cannot store a builtins\.object in a state \(at edges/1/information\)"):
+        encode_state({"edges": [edge, PoseEdge(0, 1, np.eye(4), object())]}, types)
 
 
 def test_cli_resume_without_checkpoint_names_the_file_and_keeps_results(synthetic_sequence_dir, tmp_path):
@@ -139,7 +296,7 @@ def test_cli_resume_without_checkpoint_names_the_file_and_keeps_results(syntheti
     result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--resume",
                                        "--set", "mapper.enabled=false"])
     assert result.exit_code == 2
-    assert "checkpoint.pkl: no checkpoint to resume from" in result.output
+    assert "checkpoint.npz: no checkpoint to resume from" in result.output
     assert (out / "metrics.json").read_text() == "{}"
 
 
@@ -159,7 +316,7 @@ def test_open3d_frontends_continue_from_their_state(synthetic_sequence_dir, tmp_
     first = make()
     for index in range(6):
         first.track(sequence[index])
-    path = tmp_path / "checkpoint.pkl"
+    path = tmp_path / "checkpoint.npz"
     save_checkpoint(path, Checkpoint(6, {}, {}, first.state_dict(), None, {}))
     second = make()
     second.load_state_dict(load_checkpoint(path).frontend)
@@ -179,7 +336,7 @@ def test_orb_frontend_with_mapping_thread_checkpoints_between_frames(synthetic_s
         first.track(sequence[index])
     state = first.state_dict()
     assert first._jobs.unfinished_tasks == 0
-    path = tmp_path / "checkpoint.pkl"
+    path = tmp_path / "checkpoint.npz"
     save_checkpoint(path, Checkpoint(8, {}, {}, state, None, {}))
     first.finish()
     second = OrbFrontend(sequence.camera, config)

@@ -132,6 +132,19 @@ class ViewExposure:
             self._optimiser.step()
             self._optimiser.zero_grad(set_to_none=True)
 
+    def state_dict(self) -> dict:
+        """Parameters (on the CPU), whether frozen, and the Adam state (None when frozen), for checkpoints."""
+        return {"parameters": self.parameters.detach().cpu(), "frozen": self.frozen,
+                "adam": None if self._optimiser is None else self._optimiser.state_dict()}
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> ViewExposure:
+        """The exposure :meth:`state_dict` describes, on the device of its parameters."""
+        exposure = cls(state["parameters"], frozen=state["frozen"])
+        if exposure._optimiser is not None:
+            exposure._optimiser.load_state_dict(state["adam"])  # the learning rate too
+        return exposure
+
 
 class GaussianMap:
     """Isotropic Gaussians anchored to mapping views, with their Adam state.

@@ -533,7 +533,7 @@ class OrbFrontend:
     def state_dict(self) -> dict:
         """Everything a resumed run needs (sparse map, keyframe database, motion model, frame records, counters),
         once the mapping thread has finished its queued keyframes. The values are the frontend's own objects:
-        pickle them before the next ``track``."""
+        encode them (:func:`~tambridge.checkpoint.save_checkpoint`) before the next ``track``."""
         self._jobs.join()
         self._raise_worker_error()
         with self._lock:
