@@ -11,6 +11,8 @@ from pathlib import Path
 import click
 
 from tambridge.errors import TambridgeError
+from tambridge.export.config import MeshSource
+from tambridge.settings import Device
 
 
 def _fail(error: Exception) -> None:
@@ -86,12 +88,12 @@ def _resolve_config(preset, overrides, max_frames, stride, camera_file):
 @click.argument("sequence_dir", type=click.Path(path_type=Path))
 @_run_options
 @click.option("--viewer", metavar="rerun|rerun:FILE.rrd", help="Stream to a rerun viewer, or save a rerun recording.")
-@click.option("--mesh-from", type=click.Choice(["tsdf", "gaussians"]),
-              help="mesh.ply from the sensor depth (tsdf, default) or the Gaussian map's rendered depth.")
+@click.option("--mesh-from", type=click.Choice([source.value for source in MeshSource]),
+              help="Depth fused into mesh.ply: the sensor's (sensor, default) or rendered from the Gaussian map (rendered).")
 @click.option("--resume", is_flag=True,
               help="Continue a killed run from OUTPUT/checkpoint/ (give the same sequence and options; the run needs "
                    "--set checkpoint.every_keyframes=N).")
-@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]),
+@click.option("--device", type=click.Choice([device.value for device in Device]),
               help="Where the Gaussian map and the bridge run: cpu (default), cuda (needs a GPU and gsplat), auto.")
 def reconstruct(sequence_dir, output_dir, preset, overrides, max_frames, stride, camera_file, quiet, viewer, mesh_from,
                 resume, device) -> None:
@@ -105,6 +107,17 @@ def reconstruct(sequence_dir, output_dir, preset, overrides, max_frames, stride,
     config = _resolve_config(preset, overrides, max_frames, stride, camera_file)
     _print_run_summary(run(sequence_dir, output_dir, config, progress=not quiet, viewer=viewer, resume=resume))
     click.echo(f"report: {Path(output_dir) / 'report' / 'index.html'}")
+
+
+@main.command("config")
+@click.option("--config", "preset", type=click.Path(path_type=Path), help="YAML preset (configs/*.yaml).")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override a config key, e.g. mapper.iterations=50.")
+def show_config(preset, overrides) -> None:
+    """Print the resolved config, one `key = value  # what it is; what it accepts` line per key."""
+    from tambridge.config import describe_config, load_config
+
+    for line in describe_config(load_config(preset, overrides)):
+        click.echo(line)
 
 
 @main.command()

@@ -30,6 +30,7 @@ import numpy as np
 from tambridge.errors import CheckpointError
 from tambridge.files import atomic_path
 from tambridge.io.tum import read_file_list
+from tambridge.settings import NON_NEGATIVE, setting
 from tambridge.state import StateCodec, StateTypes, decode_state, dotted_items, encode_state
 
 logger = logging.getLogger("tambridge.checkpoint")
@@ -54,7 +55,7 @@ class CheckpointConfig:
     """Checkpoints for ``reconstruct --resume``: every ``every_keyframes`` keyframes (0: never) the frontend and
     mapping state are written atomically to ``<output>/checkpoint/``; a finished run removes them."""
 
-    every_keyframes: int = 0
+    every_keyframes: int = setting(0, "write a checkpoint for --resume every n keyframes (0: never)", NON_NEGATIVE)
 
 
 @dataclasses.dataclass

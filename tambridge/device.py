@@ -12,36 +12,35 @@ import torch
 
 from tambridge.errors import ConfigError
 from tambridge.gaussians.gsplat_backend import gsplat_available
-
-DEVICE_CHOICES = ("auto", "cpu", "cuda")
-"""The values ``device`` takes (``cuda:N`` names one GPU of several)."""
+from tambridge.settings import Device
 
 
-def resolve_device(requested: str) -> torch.device:
+def resolve_device(requested: Device | str) -> torch.device:
     """The torch device for ``requested`` (``auto``, ``cpu``, ``cuda`` or ``cuda:N``).
 
     ``auto`` is CUDA when torch sees a GPU and gsplat imports, else the CPU. Raises :class:`ConfigError` naming
     the fix when the value is not one of those, or CUDA is asked for and torch has no GPU or gsplat is missing
     (never a silent fallback to the CPU).
     """
-    name = str(requested).strip().lower()
-    if name == "auto":
-        return resolve_device("cuda") if gsplat_available() else torch.device("cpu")
-    if name == "cpu":
+    parsed = Device.parse(requested)
+    if parsed is None:
+        raise ConfigError(f"device={str(requested)!r}: expected {Device.accepted()}")
+    if parsed is Device.auto:
+        return resolve_device(Device.cuda) if gsplat_available() else torch.device("cpu")
+    if parsed is Device.cpu:
         return torch.device("cpu")
-    if name != "cuda" and not (name.startswith("cuda:") and name[len("cuda:"):].isdigit()):
-        raise ConfigError(f"device={requested!r}: expected one of {', '.join(DEVICE_CHOICES)} (or cuda:N)")
+    name = str(parsed)
     if not torch.cuda.is_available():
         build = "a CPU-only build" if torch.version.cuda is None else f"built for CUDA {torch.version.cuda}"
-        raise ConfigError(f"device={requested!r}: torch {torch.__version__} ({build}) sees no CUDA GPU; run with "
+        raise ConfigError(f"device={name!r}: torch {torch.__version__} ({build}) sees no CUDA GPU; run with "
                           f"--device cpu (or --set device=cpu), or on a machine with an NVIDIA GPU install a CUDA "
                           f"build of torch and gsplat (pip install torch gsplat)")
     if not gsplat_available():
-        raise ConfigError(f"device={requested!r}: the gsplat package is not installed (the CUDA rasteriser); "
+        raise ConfigError(f"device={name!r}: the gsplat package is not installed (the CUDA rasteriser); "
                           f"pip install gsplat, or run with --device cpu")
     device = torch.device(name)
     if device.index is not None and device.index >= torch.cuda.device_count():
-        raise ConfigError(f"device={requested!r}: only {torch.cuda.device_count()} CUDA device(s) here; "
+        raise ConfigError(f"device={name!r}: only {torch.cuda.device_count()} CUDA device(s) here; "
                           f"use cuda:0 .. cuda:{torch.cuda.device_count() - 1}")
     # With its index: tensors report cuda:0, and torch.device("cuda") != torch.device("cuda:0").
     return device if device.index is not None else torch.device("cuda", torch.cuda.current_device())

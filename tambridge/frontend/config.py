@@ -6,6 +6,15 @@ import dataclasses
 
 from tambridge.frontend.open3d.config import Open3dFrontendConfig
 from tambridge.frontend.orb.config import OrbFrontendConfig
+from tambridge.settings import Choice, section, setting
+
+
+class FrontendKind(Choice):
+    """The tracking frontends."""
+
+    orb = "orb"
+    open3d = "open3d"
+    open3d_f2f = "open3d_f2f"
 
 
 @dataclasses.dataclass
@@ -16,13 +25,10 @@ class FrontendConfig:
     its odometry depths only), so every one is reachable from YAML and ``--set frontend.orb.n_features=2000``.
     """
 
-    kind: str = "orb"
-    # Read frame i+2 and extract frame i+1's ORB features in two worker threads while frame i is tracked; same
-    # results. It needs a free core: on 7-Scenes (700 frames, 2 cores) with the machine otherwise nearly idle (load
-    # 1-1.5) end to end 23.9 -> 31.5 frames/s with the mapping thread, 20.0 -> 21.7 inline (one worker, colour as
-    # recorded); with the cores busy with other work (load 3-5) -9 to +7 % with the mapping thread, -4 to 0 % inline
-    # (the threads also share the GIL). Reading registered 7-Scenes (colour resampled, ~10 ms more per frame), the
-    # second worker took idle runs from 22.0-24.1 to 25.6-26.6 frames/s.
-    prefetch: bool = True
-    orb: OrbFrontendConfig = dataclasses.field(default_factory=OrbFrontendConfig)
-    open3d: Open3dFrontendConfig = dataclasses.field(default_factory=Open3dFrontendConfig)
+    kind: FrontendKind = setting(FrontendKind.orb, "tracking frontend: orb (ORB-SLAM2 style), open3d (keyframes + pose "
+                                                   "graph) or open3d_f2f (frame-to-frame odometry)")
+    # Same results either way; it pays only where a core is free for the two workers (they share the GIL).
+    prefetch: bool = setting(True, "read frame i+2 and extract frame i+1's ORB features in two worker threads while "
+                                   "frame i is tracked")
+    orb: OrbFrontendConfig = section(OrbFrontendConfig, "settings of the ORB frontend")
+    open3d: Open3dFrontendConfig = section(Open3dFrontendConfig, "settings of both Open3D frontends")

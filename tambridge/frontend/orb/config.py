@@ -6,6 +6,8 @@ import dataclasses
 
 import numpy as np
 
+from tambridge.settings import FRACTION, NON_NEGATIVE, POSITIVE, UNIT, Range, at_least, setting
+
 
 @dataclasses.dataclass
 class OrbFrontendConfig:
@@ -16,78 +18,85 @@ class OrbFrontendConfig:
     :func:`scaled_for_image` adapts them to the camera's size.
     """
 
-    # False: the values below are used as given, whatever the image size.
-    scale_with_image: bool = True
+    # A run records the adapted values with this off (tambridge.config.config_for_camera), so config.yaml repeats the run.
+    scale_with_image: bool = setting(True, "adapt n_features, n_levels, edge_threshold_px and grid_cell_px from 640x480 "
+                                           "to the camera's size (false: use them as given)")
 
     # Features: cv2 ORB over a scale pyramid, bucketed on a grid per level so they cover the image.
-    n_features: int = 1500
-    scale_factor: float = 1.2
-    n_levels: int = 8
-    fast_threshold: int = 7
-    grid_cell_px: int = 32
-    # Keypoints nearer the border than this are not detected (ORB-SLAM: 19; smaller for tiny images).
-    edge_threshold_px: int = 19
-    min_depth_m: float = 0.1
-    # A keypoint's depth is dropped where the depth around it (window radius in px) jumps by more than this
-    # fraction: depth edges, where colour-depth misregistration makes depth unreliable (0 px: keep all).
-    depth_edge_window_px: int = 1
-    depth_edge_ratio: float = 0.05
-    max_depth_m: float = 8.0
-    # Points closer than this (ORB-SLAM's ThDepth = 40 baselines) are "close": their depth is trusted.
-    close_depth_m: float = 3.2
-    # RGB-D BA: each observation with depth adds an inverse-depth residual with sigma_z = k z^2 (k below).
-    # On: with 7-Scenes read registered (configs/cameras/7scenes_kinect.yaml) it brings the 700-frame ATE from
-    # 5.36 to 3.91 cm (k = 0.005: 3.69 cm) and the depth misalignment of revisits (benchmarks/revisit_consistency.py)
-    # from 15.2 to 13.2 mm (11.25; the ground truth's poses: 11.8); on TUM fr1/xyz 0.61 against 0.59 cm off (k = 0.005: 0.73, fr1's depth has a
-    # scale error); on clean synthetic depth 1.0 against 7.9 cm at 160x120 with k = 0.003, the sensor's own noise.
-    # With colour not registered to depth it costs accuracy (7-Scenes read as recorded: 4.0 against 3.1 cm), as
-    # the depth then belongs to another surface than the corner. Depth always seeds new points.
-    depth_noise_per_m: float = 0.02
-    depth_residuals: bool = True
+    n_features: int = setting(1500, "ORB features extracted per frame", at_least(1))
+    scale_factor: float = setting(1.2, "scale between pyramid levels", Range(1, low_open=True))
+    n_levels: int = setting(8, "pyramid levels", at_least(1))
+    fast_threshold: int = setting(7, "FAST corner threshold (intensity difference, 0-255)", Range(1, 255))
+    grid_cell_px: int = setting(32, "side of the grid cells that features are bucketed in (px)", at_least(1))
+    # ORB-SLAM uses 19; tiny images need less.
+    edge_threshold_px: int = setting(19, "keypoints nearer the image border than this are not detected (px)",
+                                     NON_NEGATIVE)
+    min_depth_m: float = setting(0.1, "keypoint depth below this is dropped (m)", NON_NEGATIVE)
+    # Colour-depth misregistration makes depth unreliable at depth edges.
+    depth_edge_window_px: int = setting(1, "radius of the window a keypoint's depth edge is looked for in (px; 0: keep "
+                                           "all depths)", NON_NEGATIVE)
+    depth_edge_ratio: float = setting(0.05, "a keypoint's depth is dropped where the depth in its window jumps by more "
+                                            "than this fraction", POSITIVE)
+    max_depth_m: float = setting(8.0, "keypoint depth beyond this is dropped (m)", POSITIVE)
+    # ORB-SLAM's ThDepth of 40 baselines.
+    close_depth_m: float = setting(3.2, "points nearer than this are close: their depth is trusted (m)", POSITIVE)
+    depth_noise_per_m: float = setting(0.02, "k of the inverse-depth residual's sigma_z = k z^2 in RGB-D bundle "
+                                             "adjustment (1/m)", POSITIVE)
+    # On: more accurate where colour is registered to depth; unregistered, a corner's depth belongs to another
+    # surface and it costs accuracy (depth seeds new points either way).
+    depth_residuals: bool = setting(True, "each observation with depth adds an inverse-depth residual to bundle "
+                                          "adjustment")
     # Matching by projecting local-map points with the motion prior.
-    search_radius_px: float = 15.0
-    refine_radius_px: float = 4.0
-    max_hamming: int = 100
-    ratio: float = 0.8
-    local_map_keyframes: int = 12
+    search_radius_px: float = setting(15.0, "radius searched around a projected local-map point (px)", POSITIVE)
+    refine_radius_px: float = setting(4.0, "search radius after the pose refinement (px)", POSITIVE)
+    max_hamming: int = setting(100, "largest descriptor distance of a match (bits of 256)", Range(0, 256))
+    ratio: float = setting(0.8, "a match's best distance must be below this times the second best", FRACTION)
+    local_map_keyframes: int = setting(12, "keyframes whose points make the local map", at_least(1))
     # PnP-RANSAC and motion-only refinement.
-    pnp_reprojection_px: float = 4.0
-    pnp_iterations: int = 60
-    min_inliers: int = 30
-    relocalisation_min_inliers: int = 50
-    # Keyframe insertion (ORB-SLAM2): tracked-point ratio to the reference keyframe, frames since the last one.
-    keyframe_tracked_ratio: float = 0.75
-    keyframe_min_frames: int = 8
-    min_new_points: int = 100
-    # ORB-SLAM2's "close points" keyframe trigger: fewer than the first tracked and more than the second not.
-    keyframe_close_tracked: int = 100
-    keyframe_close_untracked: int = 70
-    covisibility_min_shared: int = 15
-    distinctive_descriptors: bool = True
-    # Keyframe culling (ORB-SLAM's KeyFrameCulling, after local BA): a keyframe whose close points are over 90%
-    # seen by at least 3 other keyframes at a similar or finer scale leaves the map and follows a parent keyframe.
-    # Off by default: on 7-Scenes (700 frames, inline mapping, deterministic) it culled 14 of 85 keyframes and cost
-    # ATE, 3.42 vs 3.09 cm, by finding one loop instead of two (the first loop's PnP verification is marginal
-    # there: 48 inliers for 40 needed, and a changed map tips it); with the mapping thread one run each gave 3.56
-    # vs 3.42 cm (threaded runs vary by about 0.2 cm from run to run). fr1/xyz (37 frames, 4 keyframes) culls none.
-    # It pays where the camera lingers: fewer keyframes for local BA, the pose graph and the keyframe database.
-    keyframe_culling: bool = False
+    pnp_reprojection_px: float = setting(4.0, "PnP-RANSAC inlier reprojection error (px)", POSITIVE)
+    pnp_iterations: int = setting(60, "PnP-RANSAC iterations", at_least(1))
+    min_inliers: int = setting(30, "least PnP inliers of a tracked frame", at_least(4))
+    relocalisation_min_inliers: int = setting(50, "least PnP inliers of a relocalised frame", at_least(4))
+    # Keyframe insertion as ORB-SLAM2's.
+    keyframe_tracked_ratio: float = setting(0.75, "a frame tracking fewer than this share of its reference keyframe's "
+                                                  "points may become a keyframe", UNIT)
+    keyframe_min_frames: int = setting(8, "frames after the last keyframe before one is inserted", NON_NEGATIVE)
+    min_new_points: int = setting(100, "a new keyframe makes at least this many map points (the closest)", NON_NEGATIVE)
+    # ORB-SLAM2's "close points" trigger.
+    keyframe_close_tracked: int = setting(100, "close-points keyframe trigger: fewer than this close points tracked ...",
+                                          NON_NEGATIVE)
+    keyframe_close_untracked: int = setting(70, "... and more than this close points not tracked", NON_NEGATIVE)
+    covisibility_min_shared: int = setting(15, "keyframes sharing at least this many points are covisible", at_least(1))
+    distinctive_descriptors: bool = setting(True, "a map point's descriptor is the most typical of its observations "
+                                                  "(false: the first)")
+    # Off by default: it can change which loops verify and so cost accuracy; it pays where the camera lingers
+    # (fewer keyframes for local BA, the pose graph and the keyframe database).
+    keyframe_culling: bool = setting(False, "after local BA, drop keyframes whose close points are over 90 % seen by 3 "
+                                            "other keyframes (ORB-SLAM's culling)")
     # Local BA over the new keyframe and its best covisible keyframes.
-    local_ba_keyframes: int = 10
-    local_ba_iterations: int = 6
+    local_ba_keyframes: int = setting(10, "keyframes optimised by local BA (the new one and its best covisible)",
+                                      at_least(1))
+    local_ba_iterations: int = setting(6, "iterations of local BA (0: none)", NON_NEGATIVE)
     # Loop closure and global BA.
-    loop_closure: bool = True
-    vocabulary_path: str | None = None  # None: the vocabulary shipped in tambridge/frontend/orb/data
-    loop_min_inliers: int = 40
-    loop_candidates: int = 3
-    loop_min_score_ratio: float = 0.75
-    loop_cooldown_keyframes: int = 10
-    # A loop candidate must have been one (or covisible with one) for this many consecutive keyframes before.
-    loop_consistency: int = 3
-    global_ba: bool = True
-    global_ba_iterations: int = 10
-    # Keyframe work (fusion, local BA, loop closing) in a background thread; False: inline and deterministic.
-    mapping_thread: bool = True
+    loop_closure: bool = setting(True, "detect and close loops with the keyframe database")
+    vocabulary_path: str | None = setting(None, "ORB vocabulary .npz (null: the one shipped in tambridge/frontend/orb/data)")
+    loop_min_inliers: int = setting(40, "least PnP inliers verifying a loop", at_least(4))
+    loop_candidates: int = setting(3, "loop candidates verified per keyframe", at_least(1))
+    loop_min_score_ratio: float = setting(0.75, "loop candidates score at least this times the lowest score of the "
+                                                "covisible keyframes", NON_NEGATIVE)
+    loop_cooldown_keyframes: int = setting(10, "keyframes after a loop before the next is looked for", NON_NEGATIVE)
+    loop_consistency: int = setting(3, "a loop candidate must have been one for this many keyframes before (0: any)",
+                                    NON_NEGATIVE)
+    global_ba: bool = setting(True, "global bundle adjustment once the last frame is tracked")
+    global_ba_iterations: int = setting(10, "iterations of global BA", NON_NEGATIVE)
+    # Inline keyframe work is deterministic; the thread overlaps it with tracking.
+    mapping_thread: bool = setting(True, "keyframe work (fusion, local BA, loop closing) in a background thread "
+                                         "(false: inline)")
+
+    def conflict(self) -> str | None:
+        if self.min_depth_m >= self.max_depth_m:
+            return f"min_depth_m={self.min_depth_m:g} must be below max_depth_m={self.max_depth_m:g}"
+        return None
 
     @property
     def depth_noise(self) -> float:
@@ -110,7 +119,7 @@ def scaled_for_image(config: OrbFrontendConfig, width: int, height: int) -> OrbF
     values tuned by hand for the synthetic tests). The pyramid keeps levels while the short side stays at or above
     MIN_PYRAMID_SIDE_PX (4 levels at 160x120). Error thresholds in pixels stay as they are (keypoint noise is
     about a pixel at any size), and so do the keyframe point counts: scaled down, they gave fewer keyframes and a
-    worse trajectory on the 30-frame 160x120 synthetic loop (8 keyframes, 2.5 cm ATE, against 18 and 1.1 cm).
+    worse trajectory on the 160x120 synthetic loop (docs/benchmarks.md).
     """
     if not config.scale_with_image or (width, height) == REFERENCE_IMAGE_PX:
         return config
