@@ -17,6 +17,7 @@ import numpy as np
 import yaml
 
 from tambridge.errors import CameraConfigError
+from tambridge.files import read_text_file
 
 
 def pinhole(x, y, z, fx, fy, cx, cy):
@@ -165,11 +166,21 @@ def tum_preset_for_folder(folder: Path) -> RgbdSensor | None:
     return None
 
 
+DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+"""Coefficient counts OpenCV's distortion model accepts (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]])."""
+
+
 def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
-    """Build a sensor from a parsed camera file; ``source`` names the file in errors."""
-    missing = [key for key in _CAMERA_KEYS if key not in values]
+    """Build a sensor from a parsed camera file; ``source`` names the file in errors.
+
+    ``depth_scale`` is required: only the TUM presets may assume TUM's 5000, since a wrong scale still gives a
+    plausible-looking trajectory of the wrong size."""
+    missing = [key for key in (*_CAMERA_KEYS, "depth_scale") if key not in values]
     if missing:
-        raise CameraConfigError(f"{source}: missing {', '.join(missing)}; a camera file needs {', '.join(_CAMERA_KEYS)}")
+        raise CameraConfigError(f"{source}: missing {', '.join(missing)}; a camera file needs "
+                                f"{', '.join(_CAMERA_KEYS)} and depth_scale (raw depth units per metre: TUM 5000, "
+                                "millimetres 1000)")
+    _check_finite(values, source)
     try:
         distortion = values.get("distortion") or [values.get(f"d{i}", 0.0) for i in range(5)]
         camera = _camera_from_values(values, "")
@@ -178,19 +189,40 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
         invalid = values.get("depth_invalid")
         sensor = RgbdSensor(
             camera=camera,
-            depth_scale=float(values.get("depth_scale", 5000.0)),
+            depth_scale=float(values["depth_scale"]),
             depth_invalid=None if invalid is None else int(float(invalid)),
             colour_camera=colour_camera,
             colour_from_depth=colour_from_depth,
         )
     except (TypeError, ValueError) as error:
         raise CameraConfigError(f"{source}: {error}; values must be numbers") from error
-    for checked in (camera, colour_camera or camera):
+    for prefix, checked in (("", camera), ("colour_", colour_camera)):
+        if checked is None:
+            continue
         if checked.width <= 0 or checked.height <= 0 or checked.fx <= 0 or checked.fy <= 0:
             raise CameraConfigError(f"{source}: width, height, fx and fy (and their colour_ forms) must be positive")
+        if not (0 <= checked.cx <= checked.width and 0 <= checked.cy <= checked.height):
+            raise CameraConfigError(f"{source}: principal point {prefix}cx={checked.cx:g}, {prefix}cy={checked.cy:g} "
+                                    f"lies outside the {checked.width}x{checked.height} image; check the intrinsics")
+        if len(checked.distortion) not in DISTORTION_LENGTHS:
+            raise CameraConfigError(f"{source}: {prefix}distortion has {len(checked.distortion)} coefficients; OpenCV's "
+                                    f"model takes {', '.join(map(str, DISTORTION_LENGTHS))}")
     if sensor.depth_scale <= 0:
         raise CameraConfigError(f"{source}: depth_scale must be positive")
     return sensor
+
+
+def _check_finite(values: dict, source: Path) -> None:
+    """Refuse NaN or infinity in any numeric camera key, naming the key."""
+    for key, value in values.items():
+        numbers = np.ravel(np.asarray(value, dtype=object))
+        for number in numbers:
+            try:
+                as_float = float(number)
+            except (TypeError, ValueError):
+                continue
+            if not np.isfinite(as_float):
+                raise CameraConfigError(f"{source}: {key} is {number!r}; camera values must be finite numbers")
 
 
 def _camera_from_values(values: dict, prefix: str) -> Camera:
@@ -241,7 +273,7 @@ def load_sensor_file(path: Path) -> RgbdSensor:
     path = Path(path)
     if not path.is_file():
         raise CameraConfigError(f"{path}: camera file not found; pass --camera with a YAML file of {', '.join(_CAMERA_KEYS)}")
-    text = path.read_text()
+    text = read_text_file(path, CameraConfigError)
     if path.suffix.lower() in (".yaml", ".yml"):
         try:
             values = yaml.safe_load(text) or {}

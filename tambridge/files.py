@@ -11,6 +11,8 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
+from tambridge.errors import TambridgeError
+
 
 @contextlib.contextmanager
 def atomic_path(path: Path) -> Iterator[Path]:
@@ -44,3 +46,25 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write bytes to ``path`` atomically."""
     with atomic_path(path) as temp_path:
         temp_path.write_bytes(data)
+
+
+UTF16_BOMS = (b"\xff\xfe", b"\xfe\xff")
+UTF8_BOM = b"\xef\xbb\xbf"
+
+
+def read_text_file(path: Path, error: type[TambridgeError] = TambridgeError) -> str:
+    """The text of a UTF-8 file (a byte-order mark is dropped); any other encoding raises ``error`` naming the file,
+    the encoding where it is recognisable (UTF-16), and the fix."""
+    path = Path(path)
+    if path.is_dir():
+        raise error(f"{path}: is a folder, expected a text file")
+    data = path.read_bytes()
+    if data.startswith(UTF8_BOM):
+        data = data[len(UTF8_BOM):]
+    elif data.startswith(UTF16_BOMS):
+        raise error(f"{path}: is UTF-16 text; save it as UTF-8 (e.g. iconv -f UTF-16 -t UTF-8)")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as decode_error:
+        raise error(f"{path}: is not UTF-8 text (byte 0x{data[decode_error.start]:02x} at offset {decode_error.start}); "
+                    "save it as UTF-8") from None

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from tambridge.errors import TrajectoryFormatError
-from tambridge.files import atomic_write_text
+from tambridge.files import atomic_write_text, read_text_file
 from tambridge.geometry import pose_from_tum, tum_from_pose
 
 
@@ -88,7 +88,7 @@ def read_tum_trajectory(path: Path) -> Trajectory:
     path = Path(path)
     if not path.is_file():
         raise TrajectoryFormatError(f"{path}: trajectory file not found")
-    return parse_tum_trajectory(path.read_text(), str(path))
+    return parse_tum_trajectory(read_text_file(path, TrajectoryFormatError), str(path))
 
 
 def format_tum_trajectory(trajectory: Trajectory) -> str:

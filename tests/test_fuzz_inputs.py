@@ -10,7 +10,7 @@ from tambridge.errors import TambridgeError
 from tambridge.io.tum import open_sequence
 from tambridge.trajectory import parse_tum_trajectory
 
-CAMERA = "width 8\nheight 6\nfx 10\nfy 10\ncx 3.5\ncy 2.5\n"
+CAMERA = "width 8\nheight 6\nfx 10\nfy 10\ncx 3.5\ncy 2.5\ndepth_scale 5000\n"
 
 token = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True).map(repr),

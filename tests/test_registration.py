@@ -83,7 +83,7 @@ def test_camera_file_keys_of_an_unregistered_sensor(tmp_path):
     assert sensor.colour_camera == Camera(80, 60, 50.0, 51.0, 31.0, 25.0)
     assert sensor.camera == Camera(64, 48, 60.0, 60.0, 32.0, 24.0)
     np.testing.assert_array_equal(sensor.colour_from_depth[:, 3], [-0.025, 0, 0, 1])
-    base = {"width": 64, "height": 48, "fx": 60, "fy": 60, "cx": 32, "cy": 24}
+    base = {"width": 64, "height": 48, "fx": 60, "fy": 60, "cx": 32, "cy": 24, "depth_scale": 1000}
     colour = {"colour_fx": 50, "colour_fy": 50, "colour_cx": 32, "colour_cy": 24, "colour_from_depth": np.eye(4).tolist()}
     for values, message in (
         ({**base, "colour_fx": 50}, "colour_from_depth"),

@@ -37,7 +37,7 @@ def _write_sequence(folder, depth_raw, camera_text=None, rgb_stamps=(1.0, 2.0), 
         (folder / "camera.txt").write_text(camera_text)
 
 
-CAMERA_8x6 = "width 8\nheight 6\nfx 10\nfy 10\ncx 3.5\ncy 2.5\n"
+CAMERA_8x6 = "width 8\nheight 6\nfx 10\nfy 10\ncx 3.5\ncy 2.5\ndepth_scale 5000\n"
 
 
 def test_tum_depth_is_scaled_by_5000(tmp_path):

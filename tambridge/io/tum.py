@@ -14,6 +14,7 @@ import numpy as np
 
 from tambridge.camera import Camera, RgbdSensor, find_sensor
 from tambridge.errors import SequenceFormatError
+from tambridge.files import read_text_file
 from tambridge.io.registration import ColourToDepth
 from tambridge.trajectory import Trajectory, read_tum_trajectory
 
@@ -32,14 +33,21 @@ class Frame:
 
 
 def read_file_list(path: Path) -> list[tuple[float, str]]:
-    """Parse a TUM ``timestamp filename`` list; errors name the file and line."""
+    """Parse a TUM ``timestamp filename`` list (UTF-8), sorted by timestamp; errors name the file and line.
+
+    A file name may hold spaces where the whole rest of the line names an existing file; otherwise words after the
+    file name are ignored, as TUM's tools do. A timestamp listed twice is refused: each frame must be listed once.
+    """
     if not path.is_file():
+        if path.is_dir():
+            raise SequenceFormatError(f"{path}: is a folder; expected a text file of 'timestamp filename' lines")
         raise SequenceFormatError(
             f"{path}: not found; a TUM sequence folder needs rgb.txt and depth.txt "
             "(lines of 'timestamp filename'), as in the TUM RGB-D downloads"
         )
     entries = []
-    for number, line in enumerate(path.read_text(errors="replace").splitlines(), start=1):
+    first_line_of: dict[float, int] = {}
+    for number, line in enumerate(read_text_file(path, SequenceFormatError).splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -52,7 +60,12 @@ def read_file_list(path: Path) -> list[tuple[float, str]]:
             raise SequenceFormatError(f"{path} line {number}: timestamp {parts[0]!r} is not a number") from None
         if not np.isfinite(timestamp):
             raise SequenceFormatError(f"{path} line {number}: timestamp {parts[0]!r} is not finite")
-        entries.append((timestamp, parts[1]))
+        if timestamp in first_line_of:
+            raise SequenceFormatError(f"{path} line {number}: timestamp {parts[0]} is already listed on line "
+                                      f"{first_line_of[timestamp]}; list each frame once")
+        first_line_of[timestamp] = number
+        name = line[len(parts[0]):].strip()
+        entries.append((timestamp, name if len(parts) > 2 and (path.parent / name).is_file() else parts[1]))
     if not entries:
         raise SequenceFormatError(f"{path}: lists no images")
     entries.sort(key=lambda entry: entry[0])
@@ -211,21 +224,29 @@ class RgbdSequence:
         return depth_m
 
 
+JPEG_START = b"\xff\xd8"
+JPEG_END = b"\xff\xd9"
+
+
 def _imread(path: Path, flags: int, listed_in: str) -> np.ndarray:
+    """Decode an image by its content (whatever its extension); errors name the file and the fix."""
+    if path.is_dir():
+        raise SequenceFormatError(f"{path}: listed in {listed_in} but is a folder, not an image; fix {listed_in}")
     if not path.is_file():
         raise SequenceFormatError(f"{path}: image listed in {listed_in} does not exist; fix {listed_in} or restore the file")
-    if path.stat().st_size == 0:
+    size = path.stat().st_size
+    if size == 0:
         raise SequenceFormatError(f"{path}: empty file; re-extract the sequence")
-    if path.suffix.lower() in (".jpg", ".jpeg"):
-        with open(path, "rb") as handle:
-            handle.seek(max(0, path.stat().st_size - 64))
-            tail = handle.read()
-        # libjpeg decodes a truncated file into a half-grey image with only a warning: check the end marker.
-        if b"\xff\xd9" not in tail:
-            raise SequenceFormatError(f"{path}: JPEG has no end marker (truncated); re-extract the sequence")
+    with open(path, "rb") as handle:
+        start = handle.read(2)
+        handle.seek(max(0, size - 64))
+        tail = handle.read()
+    # libjpeg decodes a truncated file into a half-grey image with only a warning: check the end marker.
+    if start == JPEG_START and JPEG_END not in tail:
+        raise SequenceFormatError(f"{path}: JPEG has no end marker (truncated); re-extract the sequence")
     image = cv2.imread(str(path), flags)
     if image is None or image.size == 0:
-        raise SequenceFormatError(f"{path}: cannot decode image (corrupt or truncated); re-extract the sequence")
+        raise SequenceFormatError(f"{path}: cannot decode image (corrupt, truncated or not an image); re-extract the sequence")
     return image
 
 
@@ -239,7 +260,7 @@ def open_sequence(
     """Open a TUM-layout folder: associate colour and depth, pick the camera, load ground truth if present.
 
     ``stride`` keeps every n-th associated frame, ``max_frames`` caps the count after striding.
-    The depth scale is checked on the first frame: its median valid depth must lie in 0.1-10 m.
+    The depth scale is checked on the first frames that have depth (:func:`check_depth_scale_plausible`).
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -251,6 +272,8 @@ def open_sequence(
         )
     if stride < 1:
         raise SequenceFormatError(f"stride must be >= 1, got {stride}")
+    if max_frames is not None and max_frames < 1:
+        raise SequenceFormatError(f"max_frames must be >= 1 (or unset for every frame), got {max_frames}")
     rgb_list = read_file_list(folder / "rgb.txt")
     depth_list = read_file_list(folder / "depth.txt")
     rgb_stamps = np.array([stamp for stamp, _ in rgb_list])
@@ -282,20 +305,41 @@ def open_sequence(
     return sequence
 
 
+DEPTH_CHECK_FRAMES = 30
+"""Frames (the first ones, then spread over the sequence) searched for one with enough depth to check its scale."""
+DEPTH_CHECK_MIN_VALID = 0.01
+"""Share of valid depth pixels a frame needs for its median to say something about the depth scale."""
+
+
 def check_depth_scale_plausible(sequence: RgbdSequence) -> None:
-    """Raise if the first frame's median valid depth lies outside 0.1-10 m (a wrong ``depth_scale``)."""
-    path = sequence.depth_paths[0]
-    depth_m = sequence.read_depth_m(path)
-    valid = depth_m[depth_m > 0]
-    if valid.size == 0:
-        return  # an all-invalid first frame says nothing about the scale; tracking deals with it
-    median_m = float(np.median(valid))
-    low, high = PLAUSIBLE_MEDIAN_DEPTH_M
-    if not low <= median_m <= high:
-        raw_median = median_m * sequence.sensor.depth_scale
-        suggestion = raw_median / 2.0
-        raise SequenceFormatError(
-            f"{path}: median depth is {median_m:.3g} m with depth_scale {sequence.sensor.depth_scale:g}, outside "
-            f"{low}-{high} m; set depth_scale in camera.yaml (--camera) to the raw units per metre "
-            f"(TUM 5000, millimetres 1000; about {suggestion:.0f} would put the median at 2 m)"
-        )
+    """Raise unless the median valid depth of the first checked frame with enough depth lies in 0.1-10 m (else the
+    ``depth_scale`` is wrong), or when none of the checked frames has any depth (nothing could be reconstructed).
+
+    The first ``DEPTH_CHECK_FRAMES // 2`` frames are checked in order, then frames spread over the rest: a
+    sequence whose first frames are blank still gets its scale checked."""
+    count = len(sequence)
+    first = list(range(min(count, DEPTH_CHECK_FRAMES // 2)))
+    spread = np.linspace(len(first), count - 1, DEPTH_CHECK_FRAMES - len(first)).astype(int) if count > len(first) else []
+    candidates = list(dict.fromkeys([*first, *(int(i) for i in spread)]))
+    for index in candidates:
+        path = sequence.depth_paths[index]
+        depth_m = sequence.read_depth_m(path)
+        valid = depth_m[depth_m > 0]
+        if valid.size < DEPTH_CHECK_MIN_VALID * depth_m.size:
+            continue
+        median_m = float(np.median(valid))
+        low, high = PLAUSIBLE_MEDIAN_DEPTH_M
+        if not low <= median_m <= high:
+            raw_median = median_m * sequence.sensor.depth_scale
+            suggestion = raw_median / 2.0
+            raise SequenceFormatError(
+                f"{path}: median depth is {median_m:.3g} m with depth_scale {sequence.sensor.depth_scale:g}, outside "
+                f"{low}-{high} m; set depth_scale in camera.yaml (--camera) to the raw units per metre "
+                f"(TUM 5000, millimetres 1000; about {suggestion:.0f} would put the median at 2 m)"
+            )
+        return
+    raise SequenceFormatError(
+        f"{sequence.folder / 'depth.txt'}: none of {len(candidates)} depth images checked (the first and some spread "
+        f"over the sequence) has valid depth (at least {DEPTH_CHECK_MIN_VALID:.0%} of pixels above 0); check the depth "
+        "images and depth_invalid in camera.yaml"
+    )

@@ -1,0 +1,151 @@
+"""Inputs that used to pass silently or with a traceback: each is refused with one line naming the file and the fix."""
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from tambridge.camera import load_sensor_file
+from tambridge.errors import CameraConfigError, SequenceFormatError, TrajectoryFormatError
+from tambridge.io.tum import DEPTH_CHECK_FRAMES, open_sequence, read_file_list
+from tambridge.trajectory import read_tum_trajectory
+
+CAMERA = {"width": 8, "height": 6, "fx": 10.0, "fy": 10.0, "cx": 3.5, "cy": 2.5, "depth_scale": 5000.0}
+
+
+def write_sequence(folder, depth_frames, camera=CAMERA):
+    """A TUM-layout folder with one colour image per depth frame ((H, W) uint16 raw depth each)."""
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    rgb_lines, depth_lines = [], []
+    for index, raw in enumerate(depth_frames):
+        cv2.imwrite(str(folder / f"rgb/{index}.png"), np.full((*raw.shape, 3), 100, np.uint8))
+        cv2.imwrite(str(folder / f"depth/{index}.png"), raw)
+        rgb_lines.append(f"{index}.0 rgb/{index}.png")
+        depth_lines.append(f"{index}.0 depth/{index}.png")
+    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    (folder / "camera.yaml").write_text(yaml.safe_dump(camera))
+    return folder
+
+
+def depth(value):
+    return np.full((6, 8), value, np.uint16)
+
+
+def test_a_camera_file_without_depth_scale_is_refused(tmp_path):
+    values = {key: value for key, value in CAMERA.items() if key != "depth_scale"}
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump(values))
+    with pytest.raises(CameraConfigError, match=r"camera\.yaml: missing depth_scale"):
+        load_sensor_file(path)
+
+
+@pytest.mark.parametrize("key", ["depth_scale", "fx", "cy"])
+@pytest.mark.parametrize("value", [".nan", ".inf", "-.inf"])
+def test_nan_or_inf_in_a_camera_key_is_refused_by_name(tmp_path, key, value):
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump(CAMERA).replace(f"{key}: {CAMERA[key]}", f"{key}: {value}"))
+    with pytest.raises(CameraConfigError, match=rf"camera\.yaml: {key} is .*finite"):
+        load_sensor_file(path)
+
+
+def test_principal_point_outside_the_image_is_refused(tmp_path):
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump({**CAMERA, "cx": 80.0}))
+    with pytest.raises(CameraConfigError, match=r"principal point cx=80"):
+        load_sensor_file(path)
+
+
+@pytest.mark.parametrize("count, accepted", [(3, False), (4, True), (5, True), (6, False), (8, True), (14, True)])
+def test_distortion_has_an_opencv_length(tmp_path, count, accepted):
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump({**CAMERA, "distortion": [0.0] * count}))
+    if accepted:
+        assert len(load_sensor_file(path).camera.distortion) == count
+    else:
+        with pytest.raises(CameraConfigError, match=rf"distortion has {count} coefficients"):
+            load_sensor_file(path)
+
+
+def test_millimetre_depth_read_with_the_tum_scale_is_refused(tmp_path):
+    # 400 mm read at TUM's 5000 units per metre is 8 cm: closer than any RGB-D sensor sees.
+    folder = write_sequence(tmp_path / "seq", [depth(400)] * 3)
+    with pytest.raises(SequenceFormatError, match=r"depth/0\.png: median depth is 0\.08 m .*depth_scale"):
+        open_sequence(folder)
+
+
+def test_the_depth_scale_is_checked_on_the_first_frame_with_depth(tmp_path):
+    # Blank first frames no longer skip the check: frame 3 has millimetre depth read at TUM's scale.
+    folder = write_sequence(tmp_path / "seq", [depth(0)] * 3 + [depth(400)] * 2)
+    with pytest.raises(SequenceFormatError, match=r"depth/3\.png: median depth"):
+        open_sequence(folder)
+    plausible = write_sequence(tmp_path / "ok", [depth(0)] * 3 + [depth(10000)] * 2)
+    assert len(open_sequence(plausible)) == 5
+
+
+def test_a_sequence_without_any_depth_is_refused(tmp_path):
+    folder = write_sequence(tmp_path / "seq", [depth(0)] * (DEPTH_CHECK_FRAMES + 5))
+    with pytest.raises(SequenceFormatError, match=r"depth\.txt: none of 30 depth images checked .* has valid depth"):
+        open_sequence(folder)
+
+
+@pytest.mark.parametrize("max_frames", [0, -1])
+def test_max_frames_below_one_is_refused(tmp_path, max_frames):
+    folder = write_sequence(tmp_path / "seq", [depth(10000)] * 3)
+    with pytest.raises(SequenceFormatError, match=rf"max_frames must be >= 1 .* got {max_frames}"):
+        open_sequence(folder, max_frames=max_frames)
+
+
+def test_an_index_file_listing_a_frame_twice_is_refused(tmp_path):
+    folder = write_sequence(tmp_path / "seq", [depth(10000)] * 2)
+    lines = (folder / "rgb.txt").read_text().splitlines()
+    (folder / "rgb.txt").write_text("\n".join(line for line in lines for _ in range(2)) + "\n")
+    with pytest.raises(SequenceFormatError, match=r"rgb\.txt line 2: timestamp 0\.0 is already listed on line 1"):
+        open_sequence(folder)
+
+
+def test_index_file_encodings(tmp_path):
+    folder = write_sequence(tmp_path / "seq", [depth(10000)] * 2)
+    text = (folder / "rgb.txt").read_text()
+    (folder / "rgb.txt").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    assert read_file_list(folder / "rgb.txt") == [(0.0, "rgb/0.png"), (1.0, "rgb/1.png")]
+    (folder / "rgb.txt").write_bytes(text.encode("utf-16"))
+    with pytest.raises(SequenceFormatError, match=r"rgb\.txt: is UTF-16 text; save it as UTF-8"):
+        open_sequence(folder)
+    (folder / "rgb.txt").write_bytes(text.encode() + b"1.5 rgb/\xe9.png\n")
+    with pytest.raises(SequenceFormatError, match=r"rgb\.txt: is not UTF-8 text \(byte 0xe9"):
+        open_sequence(folder)
+
+
+def test_a_ground_truth_file_in_utf16_is_named(tmp_path):
+    path = tmp_path / "groundtruth.txt"
+    path.write_bytes("1.0 0 0 0 0 0 0 1\n".encode("utf-16"))
+    with pytest.raises(TrajectoryFormatError, match=r"groundtruth\.txt: is UTF-16"):
+        read_tum_trajectory(path)
+
+
+def test_a_file_name_with_a_space_is_read(tmp_path):
+    folder = write_sequence(tmp_path / "seq", [depth(10000)] * 2)
+    (folder / "rgb/0.png").rename(folder / "rgb/frame 0.png")
+    (folder / "rgb.txt").write_text("0.0 rgb/frame 0.png\n1.0 rgb/1.png\n")
+    sequence = open_sequence(folder)
+    assert sequence.rgb_paths[0] == folder / "rgb/frame 0.png"
+    assert sequence[0].rgb.shape == (6, 8, 3)
+
+
+def test_an_image_is_decoded_by_its_content_and_a_folder_is_named(tmp_path):
+    folder = write_sequence(tmp_path / "seq", [depth(10000)] * 2)
+    # A PNG named .jpg decodes (by content), where the JPEG end-marker check used to refuse it.
+    (folder / "rgb/0.png").rename(folder / "rgb/0.jpg")
+    (folder / "rgb.txt").write_text("0.0 rgb/0.jpg\n1.0 rgb/1.png\n")
+    assert open_sequence(folder)[0].rgb.mean() == pytest.approx(100)
+    # A truncated JPEG named .png is still caught by its missing end marker.
+    ok, encoded = cv2.imencode(".jpg", np.full((6, 8, 3), 100, np.uint8))
+    (folder / "rgb/1.png").write_bytes(encoded.tobytes()[:-2])
+    with pytest.raises(SequenceFormatError, match=r"rgb/1\.png: JPEG has no end marker"):
+        open_sequence(folder)[1]
+    (folder / "rgb/1.png").unlink()
+    (folder / "rgb/1.png").mkdir()
+    with pytest.raises(SequenceFormatError, match=r"rgb/1\.png: listed in rgb\.txt but is a folder"):
+        open_sequence(folder)[1]
