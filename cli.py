@@ -45,13 +45,13 @@ def main() -> None:
 
 
 def _print_run_summary(result) -> None:
-    trajectory_metrics = result.metrics.get("trajectory")
-    if trajectory_metrics:
+    metrics = result.metrics
+    if metrics.trajectory is not None:
         click.echo(
-            f"ATE RMSE: {trajectory_metrics['ate_rmse_m'] * 100:.2f} cm over {trajectory_metrics['pose_count']} poses "
-            f"(SE(3)-aligned); RPE {trajectory_metrics['rpe_trans_rmse_m'] * 100:.2f} cm/frame"
+            f"ATE RMSE: {metrics.trajectory.ate_rmse_m * 100:.2f} cm over {metrics.trajectory.pose_count} poses "
+            f"(SE(3)-aligned); RPE {metrics.trajectory.rpe_trans_rmse_m * 100:.2f} cm/frame"
         )
-    click.echo(f"{result.metrics['frames']} frames at {result.metrics['fps_end_to_end']:.1f} frames/s")
+    click.echo(f"{metrics.frames} frames at {metrics.fps_end_to_end:.1f} frames/s")
     click.echo(f"outputs: {result.output_dir}")
 
 

@@ -35,8 +35,8 @@ sys.path.insert(0, str(ROOT))
 
 from tambridge.evaluation.mapping import evaluation_frames  # noqa: E402
 from tambridge.mapping.stage import MappingStage  # noqa: E402
-from pipelines.reconstruct import make_frontend  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
+from tambridge.frontend.factory import make_frontend  # noqa: E402
 from tambridge.geometry import transform_points  # noqa: E402
 from tambridge.io.tum import RgbdSequence, open_sequence  # noqa: E402
 from tambridge.runlog import RunLog  # noqa: E402
@@ -66,7 +66,7 @@ def ground_truth_per_frame(sequence: RgbdSequence) -> np.ndarray:
 def record(sequence_dir: Path, max_frames: int, cache: Path, overrides: list[str]) -> None:
     config = load_config(None, overrides)
     sequence = open_sequence(sequence_dir, max_frames=max_frames or None)
-    frontend = make_frontend(config, sequence.camera)
+    frontend = make_frontend(config.frontend, sequence.camera)
     events = []
     started = time.perf_counter()
     for frame in sequence:

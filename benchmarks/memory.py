@@ -27,6 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
 DEFAULT_SEQUENCE = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699"
@@ -79,11 +80,12 @@ def run_length(sequence: Path, frames: int, out: Path, extra: list[str]) -> dict
            "rss_samples_s_mb": samples}
     metrics_path = out / "metrics.json"
     if metrics_path.is_file():
-        metrics = json.loads(metrics_path.read_text())
-        row.update(frames=metrics["frames"], keyframes=metrics["keyframes"], gaussians=metrics.get("gaussians"),
-                   peak_memory_mb_tracking=metrics.get("peak_memory_mb_tracking"),
-                   mapping_views=metrics.get("mapping_views"), fps=metrics["fps_end_to_end"],
-                   seconds_per_stage=metrics["seconds_per_stage"])
+        metrics = read_metrics(metrics_path)
+        row.update(frames=metrics.frames, keyframes=metrics.keyframes,
+                   gaussians=metrics.map.gaussians if metrics.map is not None else None,
+                   peak_memory_mb_tracking=metrics.peak_memory_mb_tracking,
+                   mapping_views=metrics.map.mapping_views if metrics.map is not None else None,
+                   fps=metrics.fps_end_to_end, seconds_per_stage=metrics.seconds_per_stage)
     return row
 
 

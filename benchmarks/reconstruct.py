@@ -29,6 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
+from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence  # noqa: E402
 
@@ -66,22 +67,20 @@ def run_case(sequence: Path, preset: str, bridge: bool, out: Path, max_frames: i
     metrics_path = out / "metrics.json"
     if not metrics_path.is_file():
         return row
-    metrics = json.loads(metrics_path.read_text())
-    rendering = metrics.get("rendering") or {}
-    novel, views = rendering.get("novel_views") or {}, rendering.get("mapping_views") or {}
-    bridge_metrics = metrics.get("bridge") or {}
-    views_ate = bridge_metrics.get("views_ate_rmse_m") or {}
-    row.update(
-        frames=metrics["frames"],
-        novel_psnr_db=novel.get("psnr_db"), novel_ssim=novel.get("ssim"), novel_lpips=novel.get("lpips"),
-        novel_frames=novel.get("frames"),
-        views_psnr_db=views.get("psnr_db"), views_ssim=views.get("ssim"), mapping_views=metrics.get("mapping_views"),
-        gaussians=metrics.get("gaussians"), fps=metrics.get("fps_end_to_end"),
-        wall_fps=metrics["frames"] / seconds, seconds_per_stage=metrics.get("seconds_per_stage"),
-        ate_cm=(metrics.get("trajectory") or {}).get("ate_rmse_m", float("nan")) * 100,
-        views_ate_frontend_cm=views_ate.get("frontend", float("nan")) * 100,
-        views_ate_rendering_cm=views_ate.get("rendering", float("nan")) * 100,
-    )
+    metrics = read_metrics(metrics_path)
+    row.update(frames=metrics.frames, fps=metrics.fps_end_to_end, wall_fps=metrics.frames / seconds,
+               seconds_per_stage=metrics.seconds_per_stage,
+               ate_cm=metrics.trajectory.ate_rmse_m * 100 if metrics.trajectory is not None else float("nan"))
+    if metrics.map is not None:
+        novel, views = metrics.map.rendering.novel_views, metrics.map.rendering.mapping_views
+        views_ate = metrics.map.bridge.views_ate_rmse_m
+        row.update(
+            novel_psnr_db=novel.psnr_db, novel_ssim=novel.ssim, novel_lpips=novel.lpips, novel_frames=novel.frames,
+            views_psnr_db=views.psnr_db, views_ssim=views.ssim, mapping_views=metrics.map.mapping_views,
+            gaussians=metrics.map.gaussians,
+            views_ate_frontend_cm=views_ate.frontend * 100 if views_ate is not None else float("nan"),
+            views_ate_rendering_cm=views_ate.rendering * 100 if views_ate is not None else float("nan"),
+        )
     return row
 
 

@@ -30,6 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 from tambridge.checkpoint import checkpoint_path, load_checkpoint
 from tambridge.errors import CheckpointError  # noqa: E402
+from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
 DEFAULT_SEQUENCE = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699"
@@ -79,12 +80,12 @@ def main() -> None:
             started = time.perf_counter()
             subprocess.run([*command, "-o", str(out), *options, *extra], check=True, stdout=subprocess.DEVNULL,
                            stderr=subprocess.DEVNULL)
-            metrics = json.loads((out / "metrics.json").read_text())
+            metrics = read_metrics(out / "metrics.json")
             result[name] = {"wall_seconds": time.perf_counter() - started,
-                            "ate_cm": metrics["trajectory"]["ate_rmse_m"] * 100.0,
-                            "novel_psnr_db": metrics["rendering"]["novel_views"]["psnr_db"],
-                            "gaussians": metrics["gaussians"], "keyframes": metrics["keyframes"],
-                            "checkpoint_seconds": metrics["seconds_per_stage"].get("checkpoint", 0.0)}
+                            "ate_cm": metrics.trajectory.ate_rmse_m * 100.0,
+                            "novel_psnr_db": metrics.map.rendering.novel_views.psnr_db,
+                            "gaussians": metrics.map.gaussians, "keyframes": metrics.keyframes,
+                            "checkpoint_seconds": metrics.seconds_per_stage.get("checkpoint", 0.0)}
             print(f"{name}: {result[name]}", flush=True)
         positions = [np.loadtxt(out / "trajectory.txt")[:, 1:4] for out in (killed, full)]
         result["max_position_difference_m"] = float(np.abs(positions[0] - positions[1]).max())

@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.sequences import camera_file_for  # noqa: E402
+from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.io.tum import open_sequence  # noqa: E402
@@ -94,23 +95,24 @@ def run_method(method: Method, sequence: Path, out: Path, max_frames: int | None
     row = {"method": method.name, "sequence": sequence.name, "exit_status": os.waitstatus_to_exitcode(status),
            "seconds": seconds, "peak_memory_mb": usage.ru_maxrss / 1024.0}
     metrics_path = out / "metrics.json"
-    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    # A reconstruct's metrics (COLMAP's metrics.json has other keys, and no frame rate or rendering scores).
+    metrics = read_metrics(metrics_path) if method.command[0] == "reconstruct" and metrics_path.is_file() else None
     # What the run itself recorded (a reconstruct without the mapper ran on the CPU); COLMAP always runs there.
-    row["device"] = metrics.get("device", device if method.command[0] == "reconstruct" else "cpu")
-    if "gpu" in metrics:
-        row.update(gpu=metrics["gpu"], gsplat_version=metrics.get("gsplat_version"),
-                   peak_gpu_memory_mb=metrics.get("peak_gpu_memory_mb"))
+    row["device"] = metrics.device.device if metrics is not None else (device if method.command[0] == "reconstruct" else "cpu")
+    if metrics is not None and metrics.device.gpu is not None:
+        row.update(gpu=metrics.device.gpu, gsplat_version=metrics.device.gsplat_version,
+                   peak_gpu_memory_mb=metrics.device.peak_gpu_memory_mb)
     trajectory_path = out / "trajectory.txt"
     if row["exit_status"] == 0 and trajectory_path.is_file():
         ground_truth = read_tum_trajectory(sequence / "groundtruth.txt")
         errors = evaluate_trajectory(read_tum_trajectory(trajectory_path), ground_truth,
                                      align="sim3" if method.monocular else "se3")
         row.update(ate_cm=errors.ate_rmse_m * 100, rpe_cm=errors.rpe_trans_rmse_m * 100, poses=errors.pose_count)
-    rendering = metrics.get("rendering") or {}
-    novel = rendering.get("novel_views") or {}
-    row.update(psnr_db=novel.get("psnr_db"), ssim=novel.get("ssim"), lpips=novel.get("lpips"))
-    frames = metrics.get("frames") or metrics.get("frames_used")
-    row["fps"] = frames / seconds if frames else None
+    row.update(psnr_db=None, ssim=None, lpips=None)
+    if metrics is not None and metrics.map is not None:
+        novel = metrics.map.rendering.novel_views
+        row.update(psnr_db=novel.psnr_db, ssim=novel.ssim, lpips=novel.lpips)
+    row["fps"] = metrics.frames / seconds if metrics is not None else None
     row["outputs"] = sorted(p.name for p in out.iterdir() if p.is_file() and not p.name.startswith(".")) if out.is_dir() else []
     return row
 

@@ -30,6 +30,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from tambridge.evaluation.metrics import RunMetrics, read_metrics  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.io.synthetic import blank_frames  # noqa: E402
@@ -63,16 +64,14 @@ def copy_first_frames(source: Path, destination: Path, frames: int) -> None:
             shutil.copyfile(source / extra, destination / extra)
 
 
-def run(sequence: Path, out: Path, extra: list[str]) -> dict:
-    """Reconstruct ``sequence`` into ``out`` in a child process; returns its metrics.json and wall seconds."""
+def run(sequence: Path, out: Path, extra: list[str]) -> tuple[RunMetrics, float]:
+    """Reconstruct ``sequence`` into ``out`` in a child process; returns its metrics.json and the wall seconds."""
     command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(sequence), "-o", str(out), "--quiet",
                *RUN_OPTIONS, *extra]
     started = time.perf_counter()
     with open(out.parent / f"{out.name}.log", "w") as log:
         subprocess.run(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, check=True)
-    metrics = json.loads((out / "metrics.json").read_text())
-    metrics["wall_seconds"] = time.perf_counter() - started
-    return metrics
+    return read_metrics(out / "metrics.json"), time.perf_counter() - started
 
 
 def ate_cm(trajectory: Trajectory, ground_truth: Trajectory, frames: np.ndarray) -> float:
@@ -102,18 +101,18 @@ def main() -> None:
         blank_frames(damaged, arguments.no_depth, arguments.black)
         for name, folder in (("unmodified", clean), ("damaged", damaged)):
             print(f"reconstructing the {name} copy ...", flush=True)
-            metrics = run(folder, Path(temp) / f"{name}_out", arguments.extra)
+            metrics, wall_seconds = run(folder, Path(temp) / f"{name}_out", arguments.extra)
             trajectory = read_tum_trajectory(Path(temp) / f"{name}_out" / "trajectory.txt")
             good = np.setdiff1d(np.arange(len(trajectory.timestamps_s)), damaged_frames)
             after = good[good > max(damaged_frames, default=-1)]
             rows.append({
-                "run": name, "frames": metrics["frames"], "frames_lost": metrics["frames_lost"],
-                "frames_relocalised": metrics["frames_relocalised"],
-                "frames_without_depth": metrics.get("frames_without_depth"), "keyframes": metrics["keyframes"],
-                "warnings": metrics["warnings"], "ate_all_cm": metrics["trajectory"]["ate_rmse_m"] * 100.0,
+                "run": name, "frames": metrics.frames, "frames_lost": metrics.frames_lost,
+                "frames_relocalised": metrics.frames_relocalised,
+                "frames_without_depth": metrics.frames_without_depth, "keyframes": metrics.keyframes,
+                "warnings": metrics.warnings, "ate_all_cm": metrics.trajectory.ate_rmse_m * 100.0,
                 "ate_good_frames_cm": ate_cm(trajectory, ground_truth, good),
                 "ate_after_damage_cm": ate_cm(trajectory, ground_truth, after), "good_frames": int(len(good)),
-                "wall_seconds": metrics["wall_seconds"],
+                "wall_seconds": wall_seconds,
             })
     lines = ["| run | frames lost | relocalised | without depth | keyframes | ATE all cm | ATE good frames cm | "
              "ATE after damage cm |", "|---|---|---|---|---|---|---|---|"]

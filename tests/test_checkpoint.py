@@ -36,6 +36,7 @@ from tambridge.checkpoint import (
     state_types,
 )
 from tambridge.config import load_config, to_dict
+from tambridge.evaluation.metrics import read_metrics
 from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.frontend.open3d.frontend import Open3dFrontend
 from tambridge.frontend.open3d.odometry import FrameToFrameOdometry
@@ -93,11 +94,11 @@ def test_killed_run_resumes_to_the_uninterrupted_result(synthetic_sequence_dir, 
     assert resumed.shape == uninterrupted.shape == (sequence_length, 8)
     np.testing.assert_array_equal(resumed[:, 0], uninterrupted[:, 0])
     assert np.abs(resumed[:, 1:4] - uninterrupted[:, 1:4]).max() < 1e-3  # metres
-    metrics = json.loads((killed_dir / "metrics.json").read_text())
-    assert metrics["keyframes"] == full.metrics["keyframes"]
-    assert metrics["frames"] == sequence_length
-    psnr = metrics["rendering"]["novel_views"]["psnr_db"]
-    assert abs(psnr - full.metrics["rendering"]["novel_views"]["psnr_db"]) < 0.5
+    metrics = read_metrics(killed_dir / "metrics.json")
+    assert metrics.keyframes == full.metrics.keyframes
+    assert metrics.frames == sequence_length
+    psnr = metrics.map.rendering.novel_views.psnr_db
+    assert abs(psnr - full.metrics.map.rendering.novel_views.psnr_db) < 0.5
     assert (killed_dir / "splats.ply").is_file()
     # The finished run leaves nothing to resume; its log holds the killed part and the resumption.
     assert not checkpoint_path(killed_dir).exists()

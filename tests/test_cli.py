@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from cli import main
 from tambridge.config import load_config
 from tambridge.errors import ConfigError
+from tambridge.evaluation.metrics import read_metrics
 from tambridge.io.tum import open_sequence
 from tambridge.trajectory import read_tum_trajectory
 
@@ -23,11 +24,11 @@ def test_reconstruct_writes_outputs_and_a_real_ate(synthetic_sequence_dir, tmp_p
     )
     assert result.exit_code == 0, result.output
     assert "ATE RMSE" in result.output
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["frames"] == 30
-    assert metrics["keyframes_culled"] == 0  # only the ORB frontend culls keyframes
+    metrics = read_metrics(out / "metrics.json")
+    assert metrics.frames == 30
+    assert metrics.keyframes_culled == 0  # only the ORB frontend culls keyframes
     # Frame-to-frame odometry on the noise-free 160x120 loop: measured 3.8 cm; drift keeps it above a few mm.
-    assert 0.001 < metrics["trajectory"]["ate_rmse_m"] < 0.08
+    assert 0.001 < metrics.trajectory.ate_rmse_m < 0.08
     trajectory = read_tum_trajectory(out / "trajectory.txt")
     assert len(trajectory) == 30
     config = yaml.safe_load((out / "config.yaml").read_text())
@@ -143,3 +144,12 @@ def test_synth_writes_a_supersampled_sequence_and_refuses_an_even_factor(tmp_pat
     np.testing.assert_array_equal(open_sequence(tmp_path / "p")[0].depth_m, sequence[0].depth_m)
     refused = runner.invoke(main, ["synth", str(tmp_path / "e"), "--supersampling", "2"])
     assert refused.exit_code == 2 and "must be odd" in refused.output
+
+
+def test_report_of_a_folder_without_current_metrics_exits_with_one_line(tmp_path):
+    (tmp_path / "metrics.json").write_text(json.dumps({"frames": 3}))  # an older tambridge's file
+    result = CliRunner().invoke(main, ["report", str(tmp_path)])
+    assert result.exit_code == 2
+    assert result.output.startswith(f"error: {tmp_path / 'metrics.json'}: no schema_version")
+    assert len(result.output.strip().splitlines()) == 1
+    assert not (tmp_path / "report").exists()

@@ -23,6 +23,7 @@ from tambridge.camera import Camera
 from tambridge.config import Config, load_config
 from tambridge.errors import ConfigError
 from tambridge.device import resolve_device
+from tambridge.evaluation.metrics import read_metrics
 from tambridge.frontend.contract import KeyframeEvent
 from tambridge.gaussians.gsplat_backend import gsplat_available
 from tambridge.threads import TORCH_THREADS, compute_threads
@@ -82,8 +83,9 @@ def test_reconstruct_with_device_cpu_records_it(synthetic_sequence_dir, tmp_path
                                        "cpu", "--max-frames", "8", "--set", "frontend.kind=open3d_f2f", "--set",
                                        "mesh.enabled=false", "--set", "mapper.iterations=5"])
     assert result.exit_code == 0, result.output
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["device"] == "cpu" and "gsplat_version" not in metrics and metrics["gaussians"] > 0
+    assert "gsplat_version" not in json.loads((out / "metrics.json").read_text())
+    metrics = read_metrics(out / "metrics.json")
+    assert metrics.device.device == "cpu" and metrics.device.gsplat_version is None and metrics.map.gaussians > 0
     assert yaml.safe_load((out / "config.yaml").read_text())["device"] == "cpu"
 
 
@@ -166,13 +168,14 @@ def test_cuda_run_matches_the_cpu_run(synthetic_sequence_dir, tmp_path):
         config = load_config(None, CUDA_RUN + (f"device={device}",))
         runs[device] = reconstruct(synthetic_sequence_dir, tmp_path / device, config, progress=False).metrics
     cpu, cuda = runs["cpu"], runs["cuda"]
-    assert cpu["device"] == "cpu" and cuda["device"].startswith("cuda:")
-    assert cuda["gsplat_version"] and cuda["gpu"] and cuda["peak_gpu_memory_mb"] > 0
-    assert cuda["trajectory"]["ate_rmse_m"] == cpu["trajectory"]["ate_rmse_m"]
-    assert cuda["bridge"]["refined_views"] == cpu["bridge"]["refined_views"] > 0
+    assert cpu.device.device == "cpu" and cuda.device.device.startswith("cuda:")
+    assert cuda.device.gsplat_version and cuda.device.gpu and cuda.device.peak_gpu_memory_mb > 0
+    assert cuda.trajectory.ate_rmse_m == cpu.trajectory.ate_rmse_m
+    assert cuda.map.bridge.refined_views == cpu.map.bridge.refined_views > 0
     assert np.loadtxt(tmp_path / "cuda" / "trajectory.txt").tolist() == np.loadtxt(tmp_path / "cpu" / "trajectory.txt").tolist()
     for views in ("novel_views", "mapping_views"):
-        assert abs(cuda["rendering"][views]["psnr_db"] - cpu["rendering"][views]["psnr_db"]) < 0.5, views
+        cuda_psnr, cpu_psnr = (getattr(run.map.rendering, views).psnr_db for run in (cuda, cpu))
+        assert abs(cuda_psnr - cpu_psnr) < 0.5, views
 
 
 POSE_OFFSET = (0.01, -0.008, 0.0, 0.0, 0.012, 0.0)

@@ -1,6 +1,5 @@
 """Online Gaussian map: anchoring, Adam, densification, pruning, and mapping a synthetic sequence at known poses."""
 
-import json
 import os
 import subprocess
 import sys
@@ -11,6 +10,7 @@ import torch
 
 from tambridge.bridge.view import MappingView
 from tambridge.evaluation.mapping import evaluation_frames
+from tambridge.evaluation.metrics import read_metrics
 from tambridge.mapping.stage import MappingStage
 from pipelines.reconstruct import reconstruct
 from tambridge.bridge.view_selection import Selection
@@ -275,16 +275,17 @@ def test_reconstruct_writes_splats_and_rendering_metrics(synthetic_sequence_dir,
     config.frontend.kind = "open3d_f2f"
     config.mesh.enabled = False
     result = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False)
-    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    metrics = read_metrics(tmp_path / "out" / "metrics.json")
     splats = load_ply(tmp_path / "out" / "splats.ply")
-    assert len(splats) == metrics["gaussians"] > 1000
-    rendering = metrics["rendering"]
-    assert rendering["novel_views"]["frames"] + rendering["mapping_views"]["frames"] >= 3
-    for scores in rendering.values():
-        assert 10.0 < scores["psnr_db"] < 60.0 and 0.0 < scores["ssim"] <= 1.0 and scores["lpips"] is None
-    assert metrics["mapping_views"] == metrics["bridge"]["view_selection"]["FIRST"] + metrics["bridge"]["view_selection"]["NO_SPARSE_MAP"]
-    assert {"tracking", "mapping", "evaluation"} <= set(metrics["seconds_per_stage"])
-    assert metrics["fps_end_to_end"] > 0 and result.metrics == metrics
+    assert len(splats) == metrics.map.gaussians > 1000
+    rendering = metrics.map.rendering
+    assert rendering.novel_views.frames + rendering.mapping_views.frames >= 3
+    for scores in (rendering.novel_views, rendering.mapping_views):
+        assert 10.0 < scores.psnr_db < 60.0 and 0.0 < scores.ssim <= 1.0 and scores.lpips is None
+    selections = metrics.map.bridge.view_selection
+    assert metrics.map.mapping_views == selections["FIRST"] + selections["NO_SPARSE_MAP"]
+    assert {"tracking", "mapping", "evaluation"} <= set(metrics.seconds_per_stage)
+    assert metrics.fps_end_to_end > 0 and result.metrics == metrics
 
 
 def test_the_bridge_lowers_the_joint_loss_of_the_orb_frontends_views(synthetic_sequence_dir, tmp_path):
@@ -294,11 +295,11 @@ def test_the_bridge_lowers_the_joint_loss_of_the_orb_frontends_views(synthetic_s
     config.input.max_frames = 20
     config.mesh.enabled = False
     metrics = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False).metrics
-    bridge = metrics["bridge"]
-    assert bridge["refined_views"] >= 1
+    bridge = metrics.map.bridge
+    assert bridge.refined_views >= 1
     # Measured: 0.454 -> 0.450 over 10 views, and their ATE 1.90 -> 1.80 cm; with the bug: 0.1725 -> 0.1725, ATE equal.
-    assert bridge["mean_loss_final"] < 0.995 * bridge["mean_loss_initial"]
-    assert bridge["views_ate_rmse_m"]["rendering"] != bridge["views_ate_rmse_m"]["frontend"]
+    assert bridge.mean_loss_final < 0.995 * bridge.mean_loss_initial
+    assert bridge.views_ate_rmse_m.rendering != bridge.views_ate_rmse_m.frontend
 
 
 def test_reconstruct_asks_the_frontend_for_keyframes_where_the_map_lacks_coverage(synthetic_sequence_dir, tmp_path):
@@ -312,8 +313,8 @@ def test_reconstruct_asks_the_frontend_for_keyframes_where_the_map_lacks_coverag
     config.mesh.enabled = False
     metrics = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False).metrics
     # Measured 4 keyframes (frames 0, 3, 6, 9: the first check, 2 frames after a keyframe, finds the map lacking).
-    assert metrics["keyframes"] == metrics["mapping_views"] >= 3
-    assert metrics["seconds_per_stage"]["coverage"] > 0
+    assert metrics.keyframes == metrics.map.mapping_views >= 3
+    assert metrics.seconds_per_stage["coverage"] > 0
 
 
 def test_pixels_without_colour_data_pull_on_nothing():

@@ -6,7 +6,8 @@ import threading
 import numpy as np
 import pytest
 
-from pipelines.reconstruct import track_sequence
+from pipelines.reconstruct import RunCounters, track_frames
+from tambridge.frontend.open3d.odometry import FrameToFrameOdometry
 from tambridge.frontend.orb.frontend import OrbFrontend
 from tambridge.frontend.orb.config import OrbFrontendConfig
 from tambridge.io.prefetch import FramePrefetcher
@@ -53,8 +54,11 @@ def test_frames_come_in_order_from_the_start_with_what_prepare_made(start):
 
 
 def test_without_prepare_frames_are_only_read_ahead():
-    with FramePrefetcher(_Frames(3)) as prefetcher:
+    frames = _Frames(3)
+    with FramePrefetcher(frames) as prefetcher:
         assert [(frame.index, prepared) for frame, prepared in prefetcher] == [(0, None), (1, None), (2, None)]
+        # Nothing to prepare: no preparer thread.
+        assert [thread.name.rsplit("_", 1)[0] for thread in _prefetch_threads()] == ["tambridge-prefetch-read"]
 
 
 def test_without_read_ahead_frames_are_read_and_prepared_in_the_callers_thread():
@@ -98,21 +102,20 @@ def sequential(synthetic_sequence_dir):
 
 
 def _track_prefetched(sequence, frontend, tmp_path, start_frame=0):
-    results = []
     run_log = RunLog(tmp_path / "run.log")
+    counters = RunCounters()
     try:
-        final = track_sequence(sequence, frontend, run_log, progress=False, start_frame=start_frame,
-                               on_frame=lambda result, frame: results.append(result), prefetch=True)
+        final = track_frames(sequence, frontend, None, counters, run_log, start_frame=start_frame, prefetch=True)
     finally:
         run_log.close()
-    return results, final, run_log
+    return counters, final, run_log
 
 
 def test_orb_tracking_with_prefetched_features_is_identical_to_sequential(sequential, tmp_path):
     sequence, expected_results, expected = sequential
-    results, final, run_log = _track_prefetched(sequence, OrbFrontend(sequence.camera, INLINE), tmp_path)
-    assert [r.is_keyframe for r in results] == [r.is_keyframe for r in expected_results]
-    assert sum(r.is_keyframe for r in expected_results) > 2
+    counters, final, run_log = _track_prefetched(sequence, OrbFrontend(sequence.camera, INLINE), tmp_path)
+    assert final.keyframe_frame_indices == expected.keyframe_frame_indices
+    assert counters.keyframes == sum(r.is_keyframe for r in expected_results) > 2
     np.testing.assert_array_equal(final.trajectory.world_from_camera, expected.trajectory.world_from_camera)
     np.testing.assert_array_equal(final.map_points_world_m, expected.map_points_world_m)
     assert final.frames_lost == expected.frames_lost == 0
@@ -129,6 +132,18 @@ def test_resumed_prefetched_tracking_continues_to_the_sequential_result(sequenti
     second = OrbFrontend(sequence.camera, INLINE)
     # A checkpoint pickles the state: the resumed frontend shares nothing with the first.
     second.load_state_dict(pickle.loads(pickle.dumps(first.state_dict())))
-    results, final, _ = _track_prefetched(sequence, second, tmp_path, start_frame=RESUME_AT)
-    assert [r.frame_index for r in results] == list(range(RESUME_AT, len(sequence)))
+    _, final, run_log = _track_prefetched(sequence, second, tmp_path, start_frame=RESUME_AT)
     np.testing.assert_array_equal(final.trajectory.world_from_camera, expected.trajectory.world_from_camera)
+    assert final.keyframe_frame_indices == expected.keyframe_frame_indices
+
+
+def test_a_frontend_without_extract_tracks_prefetched_frames_as_without(synthetic_sequence_dir, tmp_path):
+    """The Open3D frontends have nothing to extract ahead (``extract`` None): frames are only read ahead."""
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=6)
+    plain = FrameToFrameOdometry(sequence.camera)
+    expected = np.stack([plain.track(frame).world_from_camera for frame in sequence])
+    assert FrameToFrameOdometry.extract is None
+    _, final, _ = _track_prefetched(sequence, FrameToFrameOdometry(sequence.camera), tmp_path)
+    # Open3D's odometry runs in several threads: its poses agree to round-off, not bit for bit.
+    np.testing.assert_allclose(final.trajectory.world_from_camera, expected, atol=1e-9)
+    assert not _prefetch_threads()

@@ -1,7 +1,6 @@
 """Colour resampled into the depth camera for unregistered sensors: kernel against its twin, the reader against
 a synthetic Kinect-v1-like sensor with exact colour, camera-file parsing, and a reconstruction end to end."""
 
-import json
 
 import numpy as np
 import pytest
@@ -11,6 +10,7 @@ from click.testing import CliRunner
 from cli import main
 from tambridge.camera import Camera, load_sensor_file
 from tambridge.errors import CameraConfigError
+from tambridge.evaluation.metrics import read_metrics
 from tambridge.io.registration import ColourToDepth, fill_missing_depth
 from tambridge.io.synthetic import SynthOptions, make_room_scene, render, write_synthetic_sequence
 from tambridge.io.tum import open_sequence
@@ -113,8 +113,8 @@ def test_reconstruct_of_an_unregistered_sensor_tracks_and_renders_better_registe
                                            str(camera), "--set", "frontend.orb.mapping_thread=false",
                                            "--set", "mesh.enabled=false"])
         assert result.exit_code == 0, result.output
-        metrics[name] = json.loads((output / "metrics.json").read_text())
+        metrics[name] = read_metrics(output / "metrics.json")
     registered, naive_metrics = metrics["registered"], metrics["naive"]
-    psnr = {name: m["rendering"]["novel_views"]["psnr_db"] for name, m in metrics.items()}
+    psnr = {name: m.map.rendering.novel_views.psnr_db for name, m in metrics.items()}
     assert psnr["registered"] > psnr["naive"] + 2.0, psnr
-    assert registered["trajectory"]["ate_rmse_m"] < naive_metrics["trajectory"]["ate_rmse_m"], metrics
+    assert registered.trajectory.ate_rmse_m < naive_metrics.trajectory.ate_rmse_m, metrics

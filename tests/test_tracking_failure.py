@@ -47,9 +47,9 @@ def test_run_counts_lost_frames_and_recovers(synthetic_sequence_dir, tmp_path):
     # A covered lens has no keypoints: those frames are lost; frames without depth still track from colour.
     assert set(BLACK) <= lost
     assert lost.isdisjoint(NO_DEPTH)
-    assert damaged.metrics["frames_lost"] == len(lost)
-    assert damaged.metrics["frames_without_depth"] == len(NO_DEPTH)
-    assert clean.metrics["frames_without_depth"] == 0
+    assert damaged.metrics.frames_lost == len(lost)
+    assert damaged.metrics.frames_without_depth == len(NO_DEPTH)
+    assert clean.metrics.frames_without_depth == 0
     assert {int(n) for n in re.findall(r"frame (\d+) \(t=[0-9.]+\): no valid depth", log)} == set(NO_DEPTH)
     recovered = [int(n) for n in re.findall(r"frame (\d+) \(t=[0-9.]+\): tracking recovered", log)]
     assert any(max(BLACK) < n <= max(BLACK) + 3 for n in recovered), recovered

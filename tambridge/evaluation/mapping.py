@@ -7,6 +7,7 @@ import logging
 import numpy as np
 
 from tambridge.config import Config
+from tambridge.evaluation.metrics import BridgeMetrics, MapMetrics, RenderingMetrics, ViewPoseErrors, ViewScores
 from tambridge.evaluation.trajectory import ate_rmse_m
 from tambridge.frontend.contract import FrontendResult
 from tambridge.io.tum import RgbdSequence
@@ -23,7 +24,7 @@ def evaluation_frames(frame_count: int, every: int, mapping_frames: set[int]) ->
 
 
 def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: RgbdSequence, config: Config,
-                    run_log: RunLog) -> dict:
+                    run_log: RunLog) -> MapMetrics:
     """What the mapping stage adds to metrics.json: rendering scores (novel and mapping views), map and bridge figures.
 
     Renders are at full resolution from the rendering poses (the bridge-refined views and the frames anchored on
@@ -33,31 +34,31 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
     view_frames = sorted(view.frame_index for view in mapping.views)
     novel = evaluation_frames(len(sequence), config.evaluation.novel_view_every, set(view_frames))
     with run_log.stage("evaluation"):
-        novel_scores = mapping.evaluate(poses, novel)
-        view_scores = mapping.evaluate(poses, view_frames)
+        novel_scores = ViewScores(**mapping.evaluate(poses, novel).summary())
+        view_scores = ViewScores(**mapping.evaluate(poses, view_frames).summary())
     refinements = [view.refinement for view in mapping.views if view.refinement is not None and not view.refinement.skipped]
-    metrics = {
-        "rendering": {"novel_views": novel_scores.summary(), "mapping_views": view_scores.summary()},
-        "gaussians": len(mapping.map),
-        "mapping_views": len(mapping.views),
-        "mapping_resolution": [mapping.camera.width, mapping.camera.height],
-        "bridge": {
-            "enabled": config.bridge.enabled,
-            "view_selection": dict(mapping.selections),
-            "refined_views": len(refinements),
-            "mean_loss_initial": float(np.mean([r.loss_initial for r in refinements])) if refinements else None,
-            "mean_loss_final": float(np.mean([r.loss_final for r in refinements])) if refinements else None,
-        },
-    }
     logger.info("rendering: novel views %.2f dB PSNR, %.3f SSIM (%d frames); mapping views %.2f dB, %.3f SSIM (%d); %d Gaussians",
-                novel_scores.summary()["psnr_db"] or float("nan"), novel_scores.summary()["ssim"] or float("nan"),
-                len(novel), view_scores.summary()["psnr_db"] or float("nan"), view_scores.summary()["ssim"] or float("nan"),
-                len(view_frames), len(mapping.map))
+                novel_scores.psnr_db or float("nan"), novel_scores.ssim or float("nan"), len(novel),
+                view_scores.psnr_db or float("nan"), view_scores.ssim or float("nan"), len(view_frames), len(mapping.map))
+    views_ate = None
     if sequence.ground_truth is not None and len(view_frames) >= 3:
         timestamps = sequence.timestamps_s[view_frames]
         frontend_poses = tracking.trajectory.world_from_camera[view_frames]
-        metrics["bridge"]["views_ate_rmse_m"] = {
-            "frontend": ate_rmse_m(Trajectory(timestamps, frontend_poses), sequence.ground_truth, align="se3"),
-            "rendering": ate_rmse_m(Trajectory(timestamps, poses[view_frames]), sequence.ground_truth, align="se3"),
-        }
-    return metrics
+        views_ate = ViewPoseErrors(
+            frontend=ate_rmse_m(Trajectory(timestamps, frontend_poses), sequence.ground_truth, align="se3"),
+            rendering=ate_rmse_m(Trajectory(timestamps, poses[view_frames]), sequence.ground_truth, align="se3"),
+        )
+    return MapMetrics(
+        rendering=RenderingMetrics(novel_views=novel_scores, mapping_views=view_scores),
+        gaussians=len(mapping.map),
+        mapping_views=len(mapping.views),
+        mapping_resolution=[mapping.camera.width, mapping.camera.height],
+        bridge=BridgeMetrics(
+            enabled=config.bridge.enabled,
+            view_selection=dict(mapping.selections),
+            refined_views=len(refinements),
+            mean_loss_initial=float(np.mean([r.loss_initial for r in refinements])) if refinements else None,
+            mean_loss_final=float(np.mean([r.loss_final for r in refinements])) if refinements else None,
+            views_ate_rmse_m=views_ate,
+        ),
+    )

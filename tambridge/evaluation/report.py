@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 
 from tambridge.state import dotted_items  # noqa: E402
 from tambridge.evaluation.colmap import is_monocular_trajectory_file  # noqa: E402
+from tambridge.evaluation.metrics import RunMetrics, metrics_json, read_metrics  # noqa: E402
 from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_path, atomic_write_text  # noqa: E402
@@ -45,7 +46,7 @@ class RenderPair:
 
 def write_report(
     report_dir: Path,
-    metrics: dict,
+    metrics: RunMetrics,
     trajectory_errors: dict[str, TrajectoryErrors] | None = None,
     render_pairs: Sequence[RenderPair] = (),
     gaussian_counts: tuple[np.ndarray, np.ndarray] | None = None,
@@ -53,7 +54,7 @@ def write_report(
 ) -> Path:
     """Write ``report_dir/index.html`` and its PNGs; returns the HTML path.
 
-    ``metrics``: the run's metrics dict (as written to metrics.json). ``trajectory_errors``: name -> errors of
+    ``metrics``: the run's metrics (as written to metrics.json). ``trajectory_errors``: name -> errors of
     each estimate against the same ground truth (e.g. the run's SE(3)-aligned trajectory and COLMAP's Sim(3)
     one). ``render_pairs``: at most :data:`MAX_RENDER_ROWS` are shown, evenly spread. ``gaussian_counts``:
     frame indices (N,) and the map's Gaussian count after each (N,).
@@ -82,14 +83,13 @@ def write_report(
             "<h2>Renders</h2><p>Input frames (left) beside the Gaussian map rendered at their poses (right).</p>"
             '<img src="renders.png" alt="renders beside input frames">'
         )
-    stage_seconds = metrics.get("seconds_per_stage") or {}
-    if stage_seconds:
-        _plot_stage_seconds(stage_seconds, metrics.get("frontend_seconds_per_stage") or {}, report_dir / "stages.png")
+    if metrics.seconds_per_stage:
+        _plot_stage_seconds(metrics.seconds_per_stage, metrics.frontend_seconds_per_stage, report_dir / "stages.png")
         sections.append('<h2>Time per stage</h2><img src="stages.png" alt="seconds per stage">')
     if gaussian_counts is not None and len(gaussian_counts[0]):
         _plot_gaussian_counts(*gaussian_counts, report_dir / "gaussians.png")
         sections.append('<h2>Gaussians</h2><img src="gaussians.png" alt="Gaussian count over time">')
-    sections.append("<h2>Metrics</h2>" + _metrics_table(metrics))
+    sections.append("<h2>Metrics</h2>" + _metrics_table(metrics_json(metrics)))
     generated = datetime.datetime.now().isoformat(timespec="seconds")
     page = _PAGE.format(title=html.escape(title), generated=generated, body="\n".join(sections))
     index = report_dir / "index.html"
@@ -105,15 +105,10 @@ def report_from_run(run_dir: Path) -> Path:
     COLMAP trajectory is added when ``run_dir/colmap/trajectory.txt`` exists (``tambridge colmap SEQ -o
     RUN_DIR/colmap``).
     """
-    from tambridge.errors import TambridgeError
-
     run_dir = Path(run_dir)
-    metrics_path = run_dir / "metrics.json"
-    if not metrics_path.is_file():
-        raise TambridgeError(f"{metrics_path}: not found; is {run_dir} the output folder of a finished reconstruct run?")
-    metrics = json.loads(metrics_path.read_text())
+    metrics = read_metrics(run_dir / "metrics.json")
     errors = {}
-    ground_truth_path = Path(metrics.get("sequence", "")) / "groundtruth.txt"
+    ground_truth_path = Path(metrics.sequence) / "groundtruth.txt"
     if ground_truth_path.is_file():
         ground_truth = read_tum_trajectory(ground_truth_path)
         errors["tambridge (SE(3))"] = evaluate_trajectory(read_tum_trajectory(run_dir / "trajectory.txt"), ground_truth, "se3")
@@ -123,7 +118,7 @@ def report_from_run(run_dir: Path) -> Path:
             errors[f"COLMAP ({'Sim(3)' if align == 'sim3' else 'SE(3)'})"] = evaluate_trajectory(
                 read_tum_trajectory(colmap_path), ground_truth, align
             )
-    return write_report(run_dir / "report", metrics, errors, title=f"tambridge: {metrics.get('sequence', run_dir)}")
+    return write_report(run_dir / "report", metrics, errors, title=f"tambridge: {metrics.sequence}")
 
 
 def format_metric(value: object) -> str:

@@ -1,16 +1,18 @@
 """What the frontends hand to the rest of the pipeline.
 
-Both frontends (:class:`~tambridge.frontend.orb.frontend.OrbFrontend` and
-:class:`~tambridge.frontend.open3d.frontend.Open3dFrontend`) follow :class:`Frontend`: ``track(frame)`` once
-per frame in order, ``keyframe_poses()`` at any time (poses after the latest loop correction), ``finish()``
-once at the end. All poses are 4x4 float64 ``world_from_camera``; the first frame's camera is the world
-frame unless the frontend is given another ``world_from_first_camera``.
+The frontends (:class:`~tambridge.frontend.orb.frontend.OrbFrontend`,
+:class:`~tambridge.frontend.open3d.frontend.Open3dFrontend` and
+:class:`~tambridge.frontend.open3d.odometry.FrameToFrameOdometry`) follow :class:`Frontend`: ``track(frame)``
+once per frame in order (with the frame's ``extract(frame)`` made ahead, where the frontend has one),
+``keyframe_poses()`` at any time (poses after the latest loop correction), ``finish()`` once at the end. All
+poses are 4x4 float64 ``world_from_camera``; the first frame's camera is the world frame unless the frontend
+is given another ``world_from_first_camera``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -96,7 +98,14 @@ class FrontendResult:
 class Frontend(Protocol):
     """What the pipeline and the Fusion Bridge call."""
 
-    def track(self, frame: Frame) -> TrackResult: ...
+    extract: Callable[[Frame], object] | None
+    """The part of tracking a frame that needs nothing from earlier frames (the ORB frontend's features), so that it
+    can run a frame ahead in another thread (one frame at a time); None where a frontend has no such part (the
+    Open3D ones)."""
+
+    def track(self, frame: Frame, features: object | None = None) -> TrackResult:
+        """Localise the next frame. ``features``: ``extract(frame)`` made ahead (the same result), or None to
+        have ``track`` do all of it."""
 
     def keyframe_poses(self) -> dict[int, np.ndarray]: ...
 

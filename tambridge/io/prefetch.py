@@ -20,12 +20,12 @@ Prepared = TypeVar("Prepared")
 class FramePrefetcher(Generic[Prepared]):
     """Iterate ``(frame, prepare(frame))`` over frames ``start..len(sequence)-1``: while the caller has frame i, a
     reader thread reads frame i+2 and a preparer thread prepares frame i+1; ``prepare=None`` only reads ahead (the
-    second item is None).
+    second item is None, and there is no preparer thread).
 
     Use it as a context manager: leaving it (also on an error) cancels the read-ahead and waits for the workers,
     so nothing runs in the background afterwards. ``prepare`` runs in the preparer thread, one frame at a time, in
-    order; it must not touch state the caller changes meanwhile. ``read_ahead=False`` reads and prepares each
-    frame in the caller's thread when it is asked for (no worker).
+    order; it must not touch state the caller changes meanwhile (a frontend's ``extract``). ``read_ahead=False``
+    reads and prepares each frame in the caller's thread when it is asked for (no worker).
     """
 
     def __init__(self, sequence: RgbdSequence, start: int = 0, prepare: Callable[[Frame], Prepared] | None = None,
@@ -33,10 +33,8 @@ class FramePrefetcher(Generic[Prepared]):
         self.sequence = sequence
         self.start = start
         self.prepare = prepare
-        self._executors = []
-        if read_ahead:
-            self._executors = [concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"tambridge-prefetch-{role}")
-                               for role in ("read", "prepare")]
+        self._reader = _worker("read") if read_ahead else None
+        self._preparer = _worker("prepare") if read_ahead and prepare is not None else None
 
     def _prepared(self, frame: Frame) -> tuple[Frame, Prepared | None]:
         return frame, None if self.prepare is None else self.prepare(frame)
@@ -45,30 +43,39 @@ class FramePrefetcher(Generic[Prepared]):
         """The preparer thread's task: wait for the reader's frame, then prepare it."""
         return self._prepared(read.result())
 
+    def _prepare_later(self, read: concurrent.futures.Future) -> concurrent.futures.Future:
+        """The future of ``(frame, prepared)`` once ``read`` has the frame; without a preparer, ``read`` itself."""
+        return read if self._preparer is None else self._preparer.submit(self._prepared_read, read)
+
     def __iter__(self) -> Iterator[tuple[Frame, Prepared | None]]:
         indices = range(self.start, len(self.sequence))
-        if not self._executors:
+        reader = self._reader
+        if reader is None:
             yield from (self._prepared(self.sequence[index]) for index in indices)
             return
-        reader, preparer = self._executors
         reads = {index: reader.submit(self.sequence.__getitem__, index) for index in indices[:2]}
-        pending = preparer.submit(self._prepared_read, reads.pop(indices[0])) if indices else None
+        pending = self._prepare_later(reads.pop(indices[0])) if indices else None
         for index in indices:
             current = pending
             # Queued before the caller gets frame i: i+2 is read and i+1 prepared while the caller tracks i.
             if index + 2 < len(self.sequence):
                 reads[index + 2] = reader.submit(self.sequence.__getitem__, index + 2)
             if index + 1 < len(self.sequence):
-                pending = preparer.submit(self._prepared_read, reads.pop(index + 1))
-            yield current.result()
+                pending = self._prepare_later(reads.pop(index + 1))
+            yield self._prepared(current.result()) if self._preparer is None else current.result()
 
     def close(self) -> None:
         """Drop the frames read ahead and wait for the worker threads to end (idempotent)."""
-        for executor in self._executors:
-            executor.shutdown(wait=True, cancel_futures=True)
+        for executor in (self._reader, self._preparer):
+            if executor is not None:
+                executor.shutdown(wait=True, cancel_futures=True)
 
     def __enter__(self) -> "FramePrefetcher[Prepared]":
         return self
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+
+def _worker(role: str) -> concurrent.futures.ThreadPoolExecutor:
+    return concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"tambridge-prefetch-{role}")

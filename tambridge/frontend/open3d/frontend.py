@@ -82,8 +82,12 @@ class Open3dFrontend:
         finally:
             self.timings_s[stage] += time.perf_counter() - start
 
-    def track(self, frame: Frame) -> TrackResult:
-        """Register one frame to the current keyframe (frames in order); see :class:`TrackResult`."""
+    extract = None
+    """Nothing of tracking a frame runs ahead (:attr:`~tambridge.frontend.contract.Frontend.extract`)."""
+
+    def track(self, frame: Frame, features: None = None) -> TrackResult:
+        """Register one frame to the current keyframe (frames in order); see :class:`TrackResult`. ``features`` is
+        None: this frontend has no ``extract``."""
         config = self.config
         with self._timed("features"):
             rgbd = to_open3d_rgbd(frame, config.max_depth_m)

@@ -95,7 +95,12 @@ class FrameToFrameOdometry:
         self._keyframe_requested = False
         self._seconds = 0.0
 
-    def track(self, frame: Frame) -> TrackResult:
+    extract = None
+    """Nothing of tracking a frame runs ahead (:attr:`~tambridge.frontend.contract.Frontend.extract`)."""
+
+    def track(self, frame: Frame, features: None = None) -> TrackResult:
+        """Register one frame to the previous one (frames in order). ``features`` is None: this frontend has no
+        ``extract``."""
         started = time.perf_counter()
         current = to_open3d_rgbd(frame, self.max_depth_m)
         success = True
