@@ -308,7 +308,7 @@ def test_reconstruct_asks_the_frontend_for_keyframes_where_the_map_lacks_coverag
     config.input.max_frames = 12
     config.frontend.kind = "open3d"
     config.frontend.open3d.keyframe_translation_m = 100.0
-    config.frontend.open3d.keyframe_rotation_deg = 360.0
+    config.frontend.open3d.keyframe_rotation_deg = 180.0  # the most a rotation can be
     config.frontend.open3d.keyframe_max_frames = 100
     config.mesh.enabled = False
     metrics = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False).metrics
