@@ -17,17 +17,28 @@ from tambridge.settings import Device
 
 def _fail(error: Exception) -> None:
     click.echo(f"error: {error}", err=True)
-    sys.exit(2)
+    # A run stopped by a signal exits as the shell reports one (143 for SIGTERM, 130 for SIGINT).
+    sys.exit(getattr(error, "exit_status", 2))
 
 
 class _Group(click.Group):
-    """Turns tambridge's input errors into one line on stderr and exit status 2, never a traceback."""
+    """Turns tambridge's input errors, and the system's refusals to read or write a file (permissions, a full disk),
+    into one line on stderr and exit status 2, never a traceback."""
 
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
         except TambridgeError as error:
             _fail(error)
+        except OSError as error:
+            _fail(TambridgeError(f"{error.filename or 'a file'}: {error.strerror or error}"))
+
+
+def _output_folder(ctx, param, value):
+    """-o as a Path; an empty value (an unset shell variable) would mean the current folder: refused."""
+    if value is not None and not str(value).strip():
+        raise click.BadParameter("is empty (an unset shell variable?); give the output folder", param=param)
+    return None if value is None else Path(value)
 
 
 @click.group(cls=_Group)
@@ -58,7 +69,8 @@ def _print_run_summary(result) -> None:
 def _run_options(function):
     for option in reversed(
         [
-            click.option("-o", "--output", "output_dir", type=click.Path(path_type=Path), required=True, help="Output folder."),
+            click.option("-o", "--output", "output_dir", type=click.Path(), required=True, callback=_output_folder,
+                         help="Output folder (new, empty, or of an earlier run given --overwrite or --resume)."),
             click.option("--config", "preset", type=click.Path(path_type=Path), help="YAML preset (configs/*.yaml)."),
             click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override a config key, e.g. mapper.iterations=50."),
             click.option("--max-frames", type=int, help="Use at most this many frames."),
@@ -91,21 +103,27 @@ def _resolve_config(preset, overrides, max_frames, stride, camera_file):
 @click.option("--mesh-from", type=click.Choice([source.value for source in MeshSource]),
               help="Depth fused into mesh.ply: the sensor's (sensor, default) or rendered from the Gaussian map (rendered).")
 @click.option("--resume", is_flag=True,
-              help="Continue a killed run from OUTPUT/checkpoint/ (give the same sequence and options; the run needs "
-                   "--set checkpoint.every_keyframes=N).")
+              help="Continue a killed run from OUTPUT/checkpoint/ (give the same sequence and options).")
+@click.option("--overwrite", is_flag=True,
+              help="Replace the run in OUTPUT: remove the files its manifest lists (and nothing else) first.")
 @click.option("--device", type=click.Choice([device.value for device in Device]),
               help="Where the Gaussian map and the bridge run: cpu (default), cuda (needs a GPU and gsplat), auto.")
 def reconstruct(sequence_dir, output_dir, preset, overrides, max_frames, stride, camera_file, quiet, viewer, mesh_from,
-                resume, device) -> None:
+                resume, overwrite, device) -> None:
     """Track SEQUENCE_DIR (TUM layout) and write trajectory, splats, mesh and metrics to --output."""
     from pipelines.reconstruct import reconstruct as run
+    from tambridge.run_folder import Start
+
+    if resume and overwrite:
+        raise click.UsageError("--resume continues the run in OUTPUT and --overwrite replaces it: give one of them")
 
     if mesh_from is not None:
         overrides = (*overrides, f"mesh.source={mesh_from}")
     if device is not None:
         overrides = (*overrides, f"device={device}")
     config = _resolve_config(preset, overrides, max_frames, stride, camera_file)
-    _print_run_summary(run(sequence_dir, output_dir, config, progress=not quiet, viewer=viewer, resume=resume))
+    start = Start.RESUME if resume else Start.OVERWRITE if overwrite else Start.NEW
+    _print_run_summary(run(sequence_dir, output_dir, config, progress=not quiet, viewer=viewer, start=start))
     click.echo(f"report: {Path(output_dir) / 'report' / 'index.html'}")
 
 
@@ -121,7 +139,8 @@ def show_config(preset, overrides) -> None:
 
 
 @main.command()
-@click.option("-o", "--output", "output_dir", type=click.Path(path_type=Path), default=Path("out/demo"), show_default=True)
+@click.option("-o", "--output", "output_dir", type=click.Path(), default="out/demo", show_default=True, callback=_output_folder,
+              help="Output folder; an earlier demo run in it is replaced.")
 @click.option("--frames", type=int, default=60, show_default=True)
 @click.option("--size", default="320x240", show_default=True, help="WIDTHxHEIGHT of the synthetic images.")
 @click.option("--config", "preset", type=click.Path(path_type=Path), help="YAML preset (configs/*.yaml).")
@@ -129,6 +148,7 @@ def show_config(preset, overrides) -> None:
 def demo(output_dir, frames, size, preset, overrides) -> None:
     """Make a synthetic sequence with exact ground truth and reconstruct it: the quick check of an install."""
     from pipelines.reconstruct import reconstruct as run
+    from tambridge.run_folder import Start
     from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
 
     width, height = _parse_size(size)
@@ -137,7 +157,8 @@ def demo(output_dir, frames, size, preset, overrides) -> None:
         sequence_dir = Path(temp) / "synthetic"
         click.echo(f"rendering a {frames}-frame {width}x{height} synthetic sequence ...")
         write_synthetic_sequence(sequence_dir, SynthOptions(frame_count=frames, width=width, height=height, seed=config.seed))
-        _print_run_summary(run(sequence_dir, output_dir, config))
+        # The demo is the install check a user repeats: it replaces its own earlier run (only the files it wrote).
+        _print_run_summary(run(sequence_dir, output_dir, config, start=Start.OVERWRITE))
 
 
 def _parse_size(size: str) -> tuple[int, int]:
@@ -226,8 +247,11 @@ def export_mesh(run_dir, mesh_format, output_path) -> None:
     """Convert RUN_DIR/mesh.ply (from reconstruct) to OBJ, GLB or PLY for other tools."""
     from tambridge.export.mesh import convert_mesh
 
+    from tambridge.run_folder import add_to_manifest
+
     output_path = output_path or Path(run_dir) / f"mesh.{mesh_format}"
     mesh = convert_mesh(Path(run_dir) / "mesh.ply", output_path, mesh_format)
+    add_to_manifest(Path(run_dir), output_path)
     click.echo(f"wrote {output_path} ({len(mesh.vertices)} vertices, {len(mesh.faces)} triangles)")
 
 

@@ -5,6 +5,7 @@ Every output is written atomically; ``metrics.json`` is written last, so its pre
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import logging
@@ -16,6 +17,8 @@ import torch
 from tqdm import tqdm
 
 from tambridge.checkpoint import (
+    CHECKPOINT_FOLDER,
+    CHECKPOINT_NAME,
     Checkpoint,
     KeyframeCheckpoints,
     check_resumable,
@@ -27,8 +30,8 @@ from tambridge.config import Config, check_config, config_for_camera, to_dict, t
 from tambridge.device import device_summary, resolve_device
 from tambridge.evaluation.mapping import mapping_metrics
 from tambridge.evaluation.metrics import DeviceMetrics, RunMetrics, TrajectoryMetrics, write_metrics
-from tambridge.evaluation.report import RenderPair, write_report
-from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory
+from tambridge.evaluation.report import REPORT_FILES, RenderPair, write_report
+from tambridge.evaluation.trajectory import TrajectoryErrors, TrajectoryEvaluationError, evaluate_trajectory
 from tambridge.export.config import MeshSource
 from tambridge.export.mesh import fuse_tsdf_mesh, gaussian_views, sensor_views, write_mesh
 from tambridge.export.splats import save_ply
@@ -38,14 +41,17 @@ from tambridge.frontend.factory import make_frontend
 from tambridge.io.prefetch import FramePrefetcher
 from tambridge.io.tum import RgbdSequence, open_sequence
 from tambridge.mapping.stage import MappingStage
+from tambridge.run_folder import RunFolder, Start, check_output_folder
 from tambridge.runlog import RunLog, peak_memory_mb
+from tambridge.stop import RunStopped, StopRequests, signal_name
 from tambridge.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
 from tambridge.viewer import RerunViewer
 
 logger = logging.getLogger("tambridge.pipelines.reconstruct")
 
-RESULTS = ("metrics.json", "trajectory.txt", "keyframes.txt", "splats.ply", "mesh.ply", "report/index.html")
-"""What a run writes beside config.yaml and run.log, relative to its output folder."""
+RUN_FILES = ("config.yaml", "run.log", "trajectory.txt", "keyframes.txt", "splats.ply", "mesh.ply",
+             *(f"report/{name}" for name in REPORT_FILES), CHECKPOINT_FOLDER + "/" + CHECKPOINT_NAME, "metrics.json")
+"""Every file a run may write, relative to its output folder (its manifest lists them)."""
 
 
 @dataclasses.dataclass
@@ -87,70 +93,75 @@ class RunCounters:
 
 def reconstruct(
     sequence_dir: Path, output_dir: Path, config: Config, progress: bool = True, viewer: str | None = None,
-    resume: bool = False,
+    start: Start = Start.NEW,
 ) -> ReconstructResult:
-    """Reconstruct a TUM-layout sequence into ``output_dir`` (see DESIGN.md for the folder's contents).
+    """Reconstruct a TUM-layout sequence into ``output_dir`` (see docs/design.md for the folder's contents).
 
     ``viewer``: ``"rerun"`` streams the run to a spawned rerun viewer, ``"rerun:FILE.rrd"`` saves a recording.
-    ``resume``: continue from ``output_dir/checkpoint/`` (written every ``checkpoint.every_keyframes`` keyframes by
-    a run with the same config and sequence); the result is that of an uninterrupted run.
+    ``start``: what to do with an earlier run in ``output_dir`` (:class:`~tambridge.run_folder.Start`); with
+    ``Start.RESUME`` the run continues from ``output_dir/checkpoint/`` and ends as an uninterrupted run would.
+    Every input is checked before anything in ``output_dir`` is touched.
     """
-    # Before anything is read or removed: a bad value, or a GPU the run cannot have, stops it here.
     check_config(config)
     device = resolve_device(config.device)
     output_dir = Path(output_dir)
     checkpoint_file = checkpoint_path(output_dir)
-    # Before anything is removed: --resume on a finished run (no checkpoint) must not cost its results.
-    checkpoint = load_checkpoint(checkpoint_file) if resume else None
-    remove_results(output_dir, checkpoint_file if not resume else None)
-    run_log = RunLog(output_dir / "run.log", append=resume)
-    counters = RunCounters()
-    live_view = None
-    try:
-        logger.info("reconstructing %s into %s", sequence_dir, output_dir)
-        with run_log.stage("read"):
-            sequence = open_sequence(
-                sequence_dir,
-                camera_file=None if config.input.camera_file is None else Path(config.input.camera_file),
-                stride=config.input.stride,
-                max_frames=config.input.max_frames,
-            )
-        logger.info("%d frames, camera %s", len(sequence), sequence.camera)
-        # config.yaml records the values the run uses: the ORB settings as adapted to this camera's image size.
-        config = config_for_camera(config, sequence.camera.width, sequence.camera.height)
+    check_output_folder(output_dir, start, [str(checkpoint_file.relative_to(output_dir))])
+    checkpoint = load_checkpoint(checkpoint_file) if start is Start.RESUME else None
+    read_started = time.perf_counter()
+    sequence = open_sequence(
+        sequence_dir,
+        camera_file=None if config.input.camera_file is None else Path(config.input.camera_file),
+        stride=config.input.stride,
+        max_frames=config.input.max_frames,
+    )
+    read_seconds = time.perf_counter() - read_started
+    # config.yaml records the values the run uses: the ORB settings as adapted to this camera's image size.
+    config = config_for_camera(config, sequence.camera.width, sequence.camera.height)
+    fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.sensor)
+    if checkpoint is not None:
+        check_resumable(checkpoint_file, checkpoint, to_dict(config), fingerprint)
+
+    with RunFolder(output_dir, start, RUN_FILES), RunLog(output_dir / "run.log", append=checkpoint is not None) as run_log, \
+            StopRequests() as stops:
+        run_log.add_seconds("read", read_seconds)
+        logger.info("reconstructing %s into %s: %d frames, camera %s", sequence.folder, output_dir, len(sequence),
+                    sequence.camera)
         atomic_write_text(output_dir / "config.yaml", to_yaml(config))
         frontend = make_frontend(config.frontend, sequence.camera)
         mapping = MappingStage(sequence, config, run_log, device) if config.mapper.enabled else None
         logger.info("Gaussian map, bridge and rendering evaluation on %s", device if mapping is not None else "(mapper off)")
-        live_view = RerunViewer(viewer, sequence.camera) if viewer else None
-        fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.sensor)
-        start_frame = 0
-        if checkpoint is not None:
-            start_frame = restore_run(checkpoint_file, checkpoint, config, fingerprint, frontend, mapping, run_log, counters)
+        counters = RunCounters()
+        start_frame = 0 if checkpoint is None else restore_run(checkpoint, frontend, mapping, run_log, counters)
         checkpoints = None
         if config.checkpoint.every_keyframes:
             snapshot = functools.partial(run_checkpoint, config=config, fingerprint=fingerprint, frontend=frontend,
                                          mapping=mapping, run_log=run_log, counters=counters)
-            checkpoints = KeyframeCheckpoints(checkpoint_file, config.checkpoint.every_keyframes, snapshot, counters.keyframes)
+            checkpoints = KeyframeCheckpoints(checkpoint_file, config.checkpoint.every_keyframes, snapshot,
+                                              counters.keyframes, config.checkpoint.min_interval_s)
+        with contextlib.ExitStack() as viewing:
+            live_view = RerunViewer(viewer, sequence.camera) if viewer else None
+            if live_view is not None:
+                viewing.callback(live_view.close)
 
-        tracking = track_frames(sequence, frontend, mapping, counters, run_log, start_frame=start_frame,
-                                prefetch=config.frontend.prefetch, progress=progress, checkpoints=checkpoints,
-                                live_view=live_view)
-        # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
-        peak_memory_tracking_mb = peak_memory_mb()
-        write_tum_trajectory(output_dir / "trajectory.txt", tracking.trajectory)
-        write_tum_trajectory(output_dir / "keyframes.txt", tracking.keyframe_trajectory)
-        if mapping is not None:
-            mapping.finish(tracking.keyframe_poses)
-            with run_log.stage("export"):
-                save_ply(output_dir / "splats.ply", mapping.map.world_gaussians())
-        if config.mesh.enabled:
-            with run_log.stage("mesh"):
-                write_run_mesh(output_dir / "mesh.ply", sequence, tracking.trajectory, config, mapping)
-        if live_view is not None:
-            with run_log.stage("viewer"):
-                log_final_state(live_view, sequence, tracking, mapping)
-        metrics, errors = evaluate_run(sequence_dir, sequence, config, tracking, mapping, device, run_log, counters,
+            tracking = track_frames(sequence, frontend, mapping, counters, run_log, start_frame=start_frame,
+                                    prefetch=config.frontend.prefetch, progress=progress, checkpoints=checkpoints,
+                                    live_view=live_view, stops=stops)
+            # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
+            peak_memory_tracking_mb = peak_memory_mb()
+            write_tum_trajectory(output_dir / "trajectory.txt", tracking.trajectory)
+            write_tum_trajectory(output_dir / "keyframes.txt", tracking.keyframe_trajectory)
+            if mapping is not None:
+                mapping.finish(tracking.keyframe_poses)
+                with run_log.stage("export"):
+                    save_ply(output_dir / "splats.ply", mapping.map.world_gaussians())
+            if config.mesh.enabled:
+                with run_log.stage("mesh"):
+                    write_run_mesh(output_dir / "mesh.ply", sequence, tracking.trajectory, config, mapping)
+            if live_view is not None:
+                with run_log.stage("viewer"):
+                    log_final_state(live_view, sequence, tracking, mapping)
+        metrics, errors = evaluate_run(sequence, config, tracking, mapping, device, run_log, counters,
                                        peak_memory_tracking_mb)
         write_run_report(output_dir, metrics, sequence, errors, mapping, tracking.trajectory, counters.gaussian_counts)
         write_metrics(output_dir / "metrics.json", metrics)
@@ -158,21 +169,6 @@ def reconstruct(
         checkpoint_file.unlink(missing_ok=True)
         logger.info("finished in %.1f s", metrics.seconds_total)
         return ReconstructResult(tracking.trajectory, tracking.keyframe_trajectory, metrics, output_dir)
-    except BaseException as error:
-        run_log.record_stop(error)
-        raise
-    finally:
-        if live_view is not None:
-            live_view.close()
-        run_log.close()
-
-
-def remove_results(output_dir: Path, checkpoint_file: Path | None) -> None:
-    """Make ``output_dir`` and remove an earlier run's :data:`RESULTS` from it (and ``checkpoint_file`` unless None):
-    a re-run into the same folder must not leave them looking like this run's."""
-    output_dir.mkdir(parents=True, exist_ok=True)
-    for stale in [output_dir / name for name in RESULTS] + ([checkpoint_file] if checkpoint_file is not None else []):
-        stale.unlink(missing_ok=True)
 
 
 def track_frames(
@@ -186,6 +182,7 @@ def track_frames(
     progress: bool = False,
     checkpoints: KeyframeCheckpoints | None = None,
     live_view: RerunViewer | None = None,
+    stops: StopRequests | None = None,
 ) -> FrontendResult:
     """Track every frame from ``start_frame`` on, in order, mapping each keyframe (bridge, then mapper) as it comes;
     returns the frontend's final result (after loop closure and global BA).
@@ -198,7 +195,8 @@ def track_frames(
     it, or with ``prefetch`` what its reading and extraction did not hide behind tracking); "tracking" is the rest of
     the frontend's time; mapping a keyframe is not tracking.
     """
-    with FramePrefetcher(sequence, start_frame, frontend.extract if prefetch else None, read_ahead=prefetch) as prefetcher:
+    with FramePrefetcher(sequence, start_frame, frontend.extract if prefetch else None, read_ahead=prefetch) as prefetcher, \
+            stops.deferred() if stops is not None else contextlib.nullcontext():
         frames = iter(prefetcher)
         for index in tqdm(range(start_frame, len(sequence)), total=len(sequence), initial=start_frame,
                           desc="tracking", unit="frame", disable=not progress):
@@ -226,8 +224,22 @@ def track_frames(
             if checkpoints is not None and result.is_keyframe:
                 with run_log.stage("checkpoint"):
                     checkpoints.after_keyframe(index + 1)
+            if stops is not None and stops.requested is not None:
+                stop_after_frame(stops.requested, index + 1, len(sequence), checkpoints, run_log)
     with run_log.stage("tracking"):
         return frontend.finish()
+
+
+def stop_after_frame(signum: int, next_frame: int, frame_count: int, checkpoints: KeyframeCheckpoints | None,
+                     run_log: RunLog) -> None:
+    """Honour a stop signal between frames: write a checkpoint at ``next_frame`` (with checkpoints on) and raise
+    :class:`RunStopped` saying where the run stopped and how to go on."""
+    where = f"stopped by {signal_name(signum)} after frame {next_frame} of {frame_count}"
+    if checkpoints is None:
+        raise RunStopped(signum, f"{where}; no checkpoint (checkpoint.every_keyframes=0): run again to start over")
+    with run_log.stage("checkpoint"):
+        checkpoints.write(next_frame)
+    raise RunStopped(signum, f"{where}; checkpoint written: the same command with --resume continues there")
 
 
 def run_checkpoint(next_frame: int, *, config: Config, fingerprint: dict, frontend: Frontend,
@@ -239,25 +251,24 @@ def run_checkpoint(next_frame: int, *, config: Config, fingerprint: dict, fronte
                       None if mapping is None else mapping.state_dict(), run)
 
 
-def restore_run(checkpoint_file: Path, checkpoint: Checkpoint, config: Config, fingerprint: dict, frontend: Frontend,
-                mapping: MappingStage | None, run_log: RunLog, counters: RunCounters) -> int:
-    """Check that ``checkpoint`` (read from ``checkpoint_file``) is of this config and sequence, then load it into the
-    fresh frontend, mapping stage, ``run_log`` and ``counters``; returns the next frame to track."""
-    check_resumable(checkpoint_file, checkpoint, to_dict(config), fingerprint)
+def restore_run(checkpoint: Checkpoint, frontend: Frontend, mapping: MappingStage | None, run_log: RunLog,
+                counters: RunCounters) -> int:
+    """Load ``checkpoint`` (checked by :func:`check_resumable`) into the fresh frontend, mapping stage, ``run_log``
+    and ``counters``; returns the next frame to track."""
     frontend.load_state_dict(checkpoint.frontend)
     if mapping is not None:
         mapping.load_state_dict(checkpoint.mapping)
     run = checkpoint.run
     for stage, seconds in run["stage_seconds"].items():
-        run_log.stage_seconds[stage] = run_log.stage_seconds.get(stage, 0.0) + seconds
+        run_log.add_seconds(stage, seconds)
     run_log.warnings += run["warnings"]
     counters.load_state_dict(run)
-    logger.info("resuming from %s at frame %d of %d (%d keyframes)", checkpoint_file, checkpoint.next_frame,
-                fingerprint["frames"], counters.keyframes)
+    logger.info("resuming at frame %d of %d (%d keyframes)", checkpoint.next_frame, checkpoint.sequence["frames"],
+                counters.keyframes)
     return checkpoint.next_frame
 
 
-def evaluate_run(sequence_dir: Path, sequence: RgbdSequence, config: Config, tracking: FrontendResult,
+def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResult,
                  mapping: MappingStage | None, device: torch.device, run_log: RunLog, counters: RunCounters,
                  peak_memory_tracking_mb: float) -> tuple[RunMetrics, TrajectoryErrors | None]:
     """The run's metrics, and its trajectory's errors against the ground truth (None without one).
@@ -269,7 +280,7 @@ def evaluate_run(sequence_dir: Path, sequence: RgbdSequence, config: Config, tra
     fps_per_stage = {name: len(sequence) / max(seconds, 1e-9) for name, seconds in run_log.stage_seconds.items()}
     map_metrics = None if mapping is None else mapping_metrics(mapping, tracking, sequence, config, run_log)
     metrics = RunMetrics(
-        sequence=str(sequence_dir),
+        sequence=str(Path(sequence.folder).resolve()),
         frames=len(sequence),
         keyframes=len(tracking.keyframe_trajectory),
         frontend=config.frontend.kind,
@@ -287,15 +298,23 @@ def evaluate_run(sequence_dir: Path, sequence: RgbdSequence, config: Config, tra
         peak_memory_mb_tracking=peak_memory_tracking_mb,
         warnings=run_log.warnings,
         trajectory=None,
+        trajectory_unavailable=None,
         map=map_metrics,
         # The frontend, the mesh and the exporters run on the CPU: the device is the mapping stage's.
         device=DeviceMetrics(**device_summary(device)) if mapping is not None else DeviceMetrics(device="cpu"),
     )
-    errors = None
-    if sequence.ground_truth is not None:
+    if sequence.ground_truth is None:
+        metrics.trajectory_unavailable = "the sequence has no groundtruth.txt"
+        return metrics, None
+    try:
         errors = evaluate_trajectory(tracking.trajectory, sequence.ground_truth, align="se3")
-        metrics.trajectory = TrajectoryMetrics(**errors.summary())
-        logger.info("ATE RMSE %.2f cm over %d poses (SE(3)-aligned)", errors.ate_rmse_m * 100, errors.pose_count)
+    except TrajectoryEvaluationError as error:
+        # The run's other outputs are whole: say why there is no ATE rather than lose them.
+        metrics.trajectory_unavailable = str(error)
+        logger.warning("no ATE: %s", error)
+        return metrics, None
+    metrics.trajectory = TrajectoryMetrics(**errors.summary())
+    logger.info("ATE RMSE %.2f cm over %d poses (SE(3)-aligned)", errors.ate_rmse_m * 100, errors.pose_count)
     return metrics, errors
 
 

@@ -22,6 +22,7 @@ import functools
 import hashlib
 import json
 import logging
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -52,10 +53,13 @@ SEQUENCE_INDEX_FILES = ("rgb.txt", "depth.txt", "groundtruth.txt")
 
 @dataclasses.dataclass
 class CheckpointConfig:
-    """Checkpoints for ``reconstruct --resume``: every ``every_keyframes`` keyframes (0: never) the frontend and
-    mapping state are written atomically to ``<output>/checkpoint/``; a finished run removes them."""
+    """Checkpoints for ``reconstruct --resume``: after a keyframe, once ``every_keyframes`` keyframes (0: never) and
+    ``min_interval_s`` seconds have passed since the last one, the frontend and mapping state are written atomically
+    to ``<output>/checkpoint/``; a run stopped by a signal writes one too; a finished run removes them."""
 
-    every_keyframes: int = setting(0, "write a checkpoint for --resume every n keyframes (0: never)", NON_NEGATIVE)
+    every_keyframes: int = setting(10, "write a checkpoint for --resume every n keyframes (0: never)", NON_NEGATIVE)
+    # Keeps the cost of checkpoints a small share of the run where keyframes come fast.
+    min_interval_s: float = setting(20.0, "seconds of wall time at least between two checkpoints", NON_NEGATIVE)
 
 
 @dataclasses.dataclass
@@ -273,8 +277,8 @@ def load_checkpoint(path: Path) -> Checkpoint:
         if pickled.is_file():
             raise CheckpointError(f"{pickled}: a checkpoint of an older tambridge, a pickle, which this one never "
                                   f"loads (loading a pickle can run any code); {_start_over(path)}")
-        raise CheckpointError(f"{path}: no checkpoint to resume from; run without --resume, with "
-                              f"--set checkpoint.every_keyframes=N (N > 0) so that the run writes checkpoints")
+        raise CheckpointError(f"{path}: no checkpoint to resume from (the run finished, was stopped before its first "
+                              f"checkpoint, or ran with checkpoint.every_keyframes=0); run without --resume")
     try:
         return _read_checkpoint(path)
     except CheckpointError:
@@ -310,26 +314,37 @@ def check_resumable(path: Path, checkpoint: Checkpoint, config: dict, sequence: 
 
 
 class KeyframeCheckpoints:
-    """Writes a checkpoint after every ``every_keyframes``-th keyframe of a run (never when it is 0).
+    """Writes a checkpoint after a keyframe once ``every_keyframes`` keyframes (never when it is 0) and
+    ``min_interval_s`` seconds of wall time have passed since the last checkpoint (or the start).
 
     ``snapshot(next_frame)`` builds the :class:`Checkpoint` when one is due.
     """
 
     def __init__(self, path: Path, every_keyframes: int, snapshot: Callable[[int], Checkpoint],
-                 keyframes_so_far: int = 0) -> None:
+                 keyframes_so_far: int = 0, min_interval_s: float = 0.0) -> None:
         if every_keyframes < 0:
             raise CheckpointError(f"checkpoint.every_keyframes={every_keyframes}: expected 0 (off) or a positive count")
         self.path = Path(path)
         self.every_keyframes = every_keyframes
+        self.min_interval_s = min_interval_s
         self.snapshot = snapshot
         self.keyframes = keyframes_so_far
         self.written = 0
+        self._keyframes_at_last = keyframes_so_far
+        self._time_of_last = time.perf_counter()
 
     def after_keyframe(self, next_frame: int) -> None:
         """Call after each keyframe is tracked and mapped; ``next_frame`` is the index of the frame that comes next."""
         self.keyframes += 1
-        if self.every_keyframes and self.keyframes % self.every_keyframes == 0:
-            size = save_checkpoint(self.path, self.snapshot(next_frame))
-            self.written += 1
-            logger.info("checkpoint at frame %d (%d keyframes): %s, %.1f MB", next_frame, self.keyframes, self.path,
-                        size / 1e6)
+        if not self.every_keyframes or self.keyframes - self._keyframes_at_last < self.every_keyframes:
+            return
+        if time.perf_counter() - self._time_of_last >= self.min_interval_s:
+            self.write(next_frame)
+
+    def write(self, next_frame: int) -> None:
+        """Write a checkpoint now (frames ``[0, next_frame)`` tracked and mapped)."""
+        size = save_checkpoint(self.path, self.snapshot(next_frame))
+        self.written += 1
+        self._keyframes_at_last, self._time_of_last = self.keyframes, time.perf_counter()
+        logger.info("checkpoint at frame %d (%d keyframes): %s, %.1f MB", next_frame, self.keyframes, self.path,
+                    size / 1e6)

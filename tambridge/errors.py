@@ -27,3 +27,8 @@ class CheckpointError(TambridgeError):
 
 class SplatFormatError(TambridgeError):
     """A Gaussian-splat .ply file lacks the INRIA 3DGS properties or cannot be parsed."""
+
+
+class TrajectoryEvaluationError(TambridgeError, ValueError):
+    """A trajectory cannot be compared with its ground truth: too few poses share its clock, or they cannot be
+    aligned (too few, or all on a line)."""

@@ -37,6 +37,18 @@ class RunLog:
         self.logger.addHandler(self._handler)
         self.logger.addHandler(self._counter)
 
+    def __enter__(self) -> "RunLog":
+        return self
+
+    def __exit__(self, kind, error, traceback) -> None:
+        if error is not None:
+            self.record_stop(error)
+        self.close()
+
+    def add_seconds(self, stage: str, seconds: float) -> None:
+        """Count ``seconds`` to ``stage`` (time spent before the log existed, or by the run a resumed one continues)."""
+        self.stage_seconds[stage] = self.stage_seconds.get(stage, 0.0) + seconds
+
     @contextlib.contextmanager
     def stage(self, name: str) -> Iterator[None]:
         """Time a stage; repeated entries of the same name add up."""
@@ -44,7 +56,7 @@ class RunLog:
         try:
             yield
         finally:
-            self.stage_seconds[name] = self.stage_seconds.get(name, 0.0) + time.perf_counter() - start
+            self.add_seconds(name, time.perf_counter() - start)
 
     def record_stop(self, error: BaseException) -> None:
         """Say in run.log (only there: the terminal gets the error itself) why and where the run stopped."""

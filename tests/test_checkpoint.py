@@ -61,6 +61,10 @@ def _kill_at_first_checkpoint(child: subprocess.Popen, checkpoint: Path, timeout
     deadline = time.monotonic() + timeout_s
     while not checkpoint.exists() and child.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
+    # The run logs a checkpoint just after its file appears: let the line reach run.log before the kill.
+    log = checkpoint.parent.parent / "run.log"
+    while "checkpoint at frame" not in log.read_text() and child.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
     child.send_signal(signal.SIGKILL)
     child.wait()
 
@@ -68,13 +72,15 @@ def _kill_at_first_checkpoint(child: subprocess.Popen, checkpoint: Path, timeout
 def test_killed_run_resumes_to_the_uninterrupted_result(synthetic_sequence_dir, tmp_path):
     killed_dir, full_dir = tmp_path / "killed", tmp_path / "full"
     command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(synthetic_sequence_dir), "-o", str(killed_dir),
-               "--quiet", *_set_options(RUN_OPTIONS + (f"checkpoint.every_keyframes={CHECKPOINT_EVERY}",))]
+               "--quiet", *_set_options(RUN_OPTIONS + (f"checkpoint.every_keyframes={CHECKPOINT_EVERY}",
+                                                        "checkpoint.min_interval_s=0"))]
     child = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                              env=dict(os.environ, PYTHONPATH=str(ROOT)))
     # The uninterrupted run (no checkpoints: writing them must not change the result) runs here meanwhile.
     killer = threading.Thread(target=_kill_at_first_checkpoint, args=(child, checkpoint_path(killed_dir), 300.0))
     killer.start()
-    full = reconstruct(synthetic_sequence_dir, full_dir, load_config(None, RUN_OPTIONS), progress=False)
+    full = reconstruct(synthetic_sequence_dir, full_dir, load_config(None, RUN_OPTIONS + ("checkpoint.every_keyframes=0",)),
+                       progress=False)
     killer.join()
 
     assert child.returncode == -signal.SIGKILL, "the run finished before it could be killed"
@@ -103,7 +109,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(synthetic_sequence_dir, 
     # The finished run leaves nothing to resume; its log holds the killed part and the resumption.
     assert not checkpoint_path(killed_dir).exists()
     log = (killed_dir / "run.log").read_text()
-    assert f"checkpoint at frame {written.next_frame}" in log and "resuming from" in log
+    assert f"checkpoint at frame {written.next_frame}" in log and f"resuming at frame {written.next_frame}" in log
 
 
 def _checkpoint(config: dict, fingerprint: dict, next_frame: int = 5) -> Checkpoint:
@@ -167,7 +173,7 @@ def _write_archive(path: Path, document, **arrays) -> None:
 
 def test_missing_truncated_or_foreign_checkpoints_give_clear_errors(tmp_path):
     path = checkpoint_path(tmp_path / "out")
-    with pytest.raises(CheckpointError, match=r"checkpoint\.npz: no checkpoint to resume from.*every_keyframes"):
+    with pytest.raises(CheckpointError, match=r"checkpoint\.npz: no checkpoint to resume from .*every_keyframes=0\); run without --resume"):
         load_checkpoint(path)
     unreadable = rf"checkpoint\.npz: not a readable tambridge checkpoint \(.*\); run without --resume to start over " \
                  rf"\(or delete {path.parent}/\)$"

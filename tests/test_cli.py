@@ -54,8 +54,8 @@ def test_bad_input_exits_with_one_line_and_no_results(tmp_path):
     assert result.exit_code == 2
     assert result.output.strip().startswith("error: ") and "not a sequence folder" in result.output
     assert len(result.output.strip().splitlines()) == 1
-    assert not (out / "metrics.json").exists() and not (out / "trajectory.txt").exists()
-    assert "run stopped" in (out / "run.log").read_text()
+    # The input is checked before anything is written: not even the output folder is made.
+    assert not out.exists()
 
 
 def test_evaluate_prints_a_table_and_writes_a_plot(synthetic_sequence_dir, tmp_path):

@@ -72,7 +72,8 @@ def _metrics(**fields) -> RunMetrics:
     values = dict(sequence="seq", frames=30, keyframes=5, frontend="orb", frames_lost=0, frames_relocalised=0,
                   frames_without_depth=0, loops_closed=0, keyframes_culled=0, frontend_seconds_per_stage={},
                   seconds_total=10.0, fps_end_to_end=3.0, seconds_per_stage={}, fps_per_stage={}, peak_memory_mb=500.0,
-                  peak_memory_mb_tracking=400.0, warnings=0, trajectory=None, device=DeviceMetrics(device="cpu"))
+                  peak_memory_mb_tracking=400.0, warnings=0, trajectory=None, trajectory_unavailable="no ground truth",
+                  device=DeviceMetrics(device="cpu"))
     return RunMetrics(**{**values, **fields})
 
 

@@ -12,17 +12,19 @@ import dataclasses
 import logging
 import tempfile
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 import cv2
 import numpy as np
-import pycolmap
 
 from tambridge.camera import Camera
 from tambridge.errors import TambridgeError
 from tambridge.geometry import inverse
 from tambridge.files import atomic_write_text
 from tambridge.trajectory import Trajectory, format_tum_trajectory
+
+if TYPE_CHECKING:
+    import pycolmap
 
 logger = logging.getLogger("tambridge.evaluation.colmap")
 
@@ -101,6 +103,9 @@ def run_colmap(
         raise ValueError(f"{len(names)} images but {len(timestamps_s)} timestamps")
     database = workspace / "database.db"
     database.unlink(missing_ok=True)
+    # Imported here: pycolmap's native signal handlers would otherwise print a stack dump when any run is stopped.
+    import pycolmap
+
     # COLMAP logs every image at INFO through glog on stderr; keep its warnings and errors only.
     log_level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
@@ -119,6 +124,8 @@ def _reconstruct(
     database: Path, image_dir: Path, model_dir: Path, names: list[str], camera: Camera, options: ColmapOptions
 ) -> pycolmap.Reconstruction:
     """Features, sequential matches and incremental mapping; the model with the most registered images."""
+    import pycolmap
+
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
     reader.camera_params = f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}"

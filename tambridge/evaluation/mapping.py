@@ -8,6 +8,7 @@ import numpy as np
 
 from tambridge.config import Config
 from tambridge.evaluation.metrics import BridgeMetrics, MapMetrics, RenderingMetrics, ViewPoseErrors, ViewScores
+from tambridge.errors import TrajectoryEvaluationError
 from tambridge.evaluation.trajectory import ate_rmse_m
 from tambridge.frontend.contract import FrontendResult
 from tambridge.io.tum import RgbdSequence
@@ -44,10 +45,14 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
     if sequence.ground_truth is not None and len(view_frames) >= 3:
         timestamps = sequence.timestamps_s[view_frames]
         frontend_poses = tracking.trajectory.world_from_camera[view_frames]
-        views_ate = ViewPoseErrors(
-            frontend=ate_rmse_m(Trajectory(timestamps, frontend_poses), sequence.ground_truth, align="se3"),
-            rendering=ate_rmse_m(Trajectory(timestamps, poses[view_frames]), sequence.ground_truth, align="se3"),
-        )
+        try:
+            views_ate = ViewPoseErrors(
+                frontend=ate_rmse_m(Trajectory(timestamps, frontend_poses), sequence.ground_truth, align="se3"),
+                rendering=ate_rmse_m(Trajectory(timestamps, poses[view_frames]), sequence.ground_truth, align="se3"),
+            )
+        except TrajectoryEvaluationError as error:
+            # The run's metrics say why there is no ATE (trajectory_unavailable); the map's scores stand without it.
+            logger.info("no ATE of the mapping views: %s", error)
     return MapMetrics(
         rendering=RenderingMetrics(novel_views=novel_scores, mapping_views=view_scores),
         gaussians=len(mapping.map),

@@ -117,8 +117,8 @@ class RunMetrics:
     run). Seconds: ``frontend_seconds_per_stage`` inside the frontend, ``seconds_per_stage`` of the run (with the
     evaluation), ``seconds_total`` end to end (without the evaluation), ``fps_*`` frames over those seconds (per
     stage: the stages before the evaluation). Memory: peak resident MiB at the end and after tracking.
-    ``warnings``: how many the run logged. ``trajectory``: None without ground truth; ``map``: None with the
-    mapper off.
+    ``warnings``: how many the run logged. ``trajectory``: None without ground truth or where it could not be
+    compared, ``trajectory_unavailable`` then says why (None with a trajectory); ``map``: None with the mapper off.
     """
 
     sequence: str
@@ -139,6 +139,7 @@ class RunMetrics:
     peak_memory_mb_tracking: float
     warnings: int
     trajectory: TrajectoryMetrics | None
+    trajectory_unavailable: str | None
     map: MapMetrics | None = dataclasses.field(default=None, metadata=IN_PARENT)
     device: DeviceMetrics = dataclasses.field(metadata=IN_PARENT)
 

@@ -44,6 +44,10 @@ class RenderPair:
     rendered_rgb: np.ndarray
 
 
+REPORT_FILES = ("index.html", "trajectory.png", "renders.png", "stages.png", "gaussians.png")
+"""Every file :func:`write_report` may write into the report folder."""
+
+
 def write_report(
     report_dir: Path,
     metrics: RunMetrics,

@@ -8,8 +8,10 @@ from typing import Literal
 
 import numpy as np
 from evo.core import metrics, sync
+from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 
+from tambridge.errors import TrajectoryEvaluationError
 from tambridge.trajectory import Trajectory
 
 Alignment = Literal["se3", "sim3", "none"]
@@ -62,6 +64,13 @@ def _from_evo(trajectory: PoseTrajectory3D) -> Trajectory:
     return Trajectory(np.asarray(trajectory.timestamps), np.stack(trajectory.poses_se3))
 
 
+def _span(trajectory: Trajectory) -> str:
+    """The time span of a trajectory, for messages."""
+    if not len(trajectory):
+        return "empty"
+    return f"{trajectory.timestamps_s[0]:.3f}..{trajectory.timestamps_s[-1]:.3f} s"
+
+
 def evaluate_trajectory(
     traj_est: Trajectory,
     traj_ref: Trajectory,
@@ -72,16 +81,25 @@ def evaluate_trajectory(
 
     ``align="sim3"`` also estimates scale (monocular trajectories); ``"none"`` compares as given.
     """
-    evo_ref, evo_est = sync.associate_trajectories(_to_evo(traj_ref), _to_evo(traj_est), max_diff=max_time_difference_s)
-    if evo_est.num_poses < 3:
-        raise ValueError(
-            f"only {evo_est.num_poses} estimated poses lie within {max_time_difference_s} s of a reference pose; "
-            "check that both trajectories use the same clock"
+    try:
+        evo_ref, evo_est = sync.associate_trajectories(_to_evo(traj_ref), _to_evo(traj_est), max_diff=max_time_difference_s)
+    except sync.SyncException:
+        evo_est = None
+    matched = 0 if evo_est is None else evo_est.num_poses
+    if matched < 3:
+        raise TrajectoryEvaluationError(
+            f"only {matched} of {len(traj_est)} estimated poses lie within {max_time_difference_s} s of a reference "
+            f"pose (estimate {_span(traj_est)}, reference {_span(traj_ref)}); check that both use the same clock and "
+            "cover the same frames"
         )
     evo_est = copy.deepcopy(evo_est)
     scale = 1.0
     if align != "none":
-        _, _, scale = evo_est.align(evo_ref, correct_scale=(align == "sim3"))
+        try:
+            _, _, scale = evo_est.align(evo_ref, correct_scale=(align == "sim3"))
+        except GeometryException as error:
+            raise TrajectoryEvaluationError(f"the {matched} matched poses cannot be aligned ({error}); the camera "
+                                            "barely moved or moved along a line") from None
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((evo_ref, evo_est))
     rpe_trans = metrics.RPE(metrics.PoseRelation.translation_part, delta=1, delta_unit=metrics.Unit.frames)

@@ -30,12 +30,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 
 import numba
 import numpy as np
 
 from tambridge.camera import Camera, pinhole_numba
 from tambridge.gaussians.model import ALPHA_MAX, NEAR_PLANE_M, SIGMA_CUTOFF, TRANSMITTANCE_MIN
+
+# numba tries TBB first for parallel kernels and warns on every run where only an older TBB is installed; it then
+# uses OpenMP, which is what these kernels are tuned for, so the warning tells a user nothing.
+warnings.filterwarnings("ignore", message=".*The TBB threading layer requires TBB", category=numba.NumbaWarning)
 
 TILE_PX = 32
 """Tile side, pixels. 32 rather than GPU rasterisers' 16: a Gaussian whose box crosses a tile border is listed (and
