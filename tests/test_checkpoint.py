@@ -193,4 +193,5 @@ def test_orb_frontend_with_mapping_thread_checkpoints_between_frames(synthetic_s
     assert len(result.trajectory.timestamps_s) == len(sequence)
     assert len(result.keyframe_trajectory.timestamps_s) >= keyframes_before
     errors = evaluate_trajectory(result.trajectory, sequence.ground_truth)
-    assert errors.ate_rmse_m < 0.2
+    # As an uninterrupted run of these frames with the mapping thread (whose timing varies the result a little).
+    assert errors.ate_rmse_m < 0.05

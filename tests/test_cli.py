@@ -28,7 +28,7 @@ def test_reconstruct_writes_outputs_and_a_real_ate(synthetic_sequence_dir, tmp_p
     assert metrics["keyframes_culled"] == 0  # only the ORB frontend culls keyframes
     # Frame-to-frame odometry drifts on the noise-free 160x120 loop (no loop closure): the error is centimetres,
     # never the zero of a trajectory copied from the ground truth.
-    assert 0.001 < metrics["trajectory"]["ate_rmse_m"] < 0.08
+    assert 0.028 < metrics["trajectory"]["ate_rmse_m"] < 0.048  # 1 cm either side of this deterministic run's
     trajectory = read_tum_trajectory(out / "trajectory.txt")
     assert len(trajectory) == 30
     config = yaml.safe_load((out / "config.yaml").read_text())
