@@ -52,6 +52,7 @@ def _kill_at_first_checkpoint(child: subprocess.Popen, checkpoint: Path, timeout
     child.wait()
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_the_uninterrupted_result(synthetic_sequence_dir, tmp_path):
     killed_dir, full_dir = tmp_path / "killed", tmp_path / "full"
     command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(synthetic_sequence_dir), "-o", str(killed_dir),

@@ -16,6 +16,7 @@ from tambridge.io.tum import open_sequence
 from tambridge.trajectory import read_tum_trajectory
 
 
+@pytest.mark.slow
 def test_reconstruct_writes_outputs_and_a_real_ate(synthetic_sequence_dir, tmp_path):
     out = tmp_path / "out"
     result = CliRunner().invoke(

@@ -22,6 +22,7 @@ def sequence_320(tmp_path_factory) -> Path:
     return folder
 
 
+@pytest.mark.slow
 def test_colmap_trajectory_within_2cm_after_sim3(sequence_320, tmp_path):
     run = colmap(sequence_320, tmp_path / "out", every=1, options=ColmapOptions(num_threads=2))
     assert run.metrics["registered"] == 20

@@ -159,6 +159,7 @@ def _end_drift(frames, ground_truth, camera, loop_closure: bool) -> tuple[float,
     return float(np.linalg.norm(error[:3, 3])), float(angle_deg), final.loops_closed, final.timings_s
 
 
+@pytest.mark.slow
 def test_loop_closure_cuts_end_point_drift_in_half():
     frames, ground_truth, camera = _panorama(48, seed=2)
     drift_open, angle_open, loops_open, timings_open = _end_drift(frames, ground_truth, camera, loop_closure=False)

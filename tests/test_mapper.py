@@ -180,6 +180,7 @@ class GroundTruthFrontend:
         return KeyframeEvent(keyframe_id, frame_index, 0.0, pose, np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.int64), 0, 0)
 
 
+@pytest.mark.slow
 def test_mapping_a_synthetic_sequence_at_ground_truth_poses(synthetic_sequence_dir, tmp_path):
     sequence = open_sequence(synthetic_sequence_dir)
     config = Config()
@@ -217,6 +218,7 @@ def test_mapping_a_synthetic_sequence_at_ground_truth_poses(synthetic_sequence_d
     assert views["psnr_db"] > scores["psnr_db"]  # the mapped frames render better than the held-out ones
 
 
+@pytest.mark.slow
 def test_coverage_rule_maps_a_keyframe_that_eq_3_rejects_and_asks_for_one_in_a_gap(synthetic_sequence_dir, tmp_path):
     """Frames 0 and 8 of the fast 30-frame loop as keyframes at ground-truth poses, frame 8 sharing as many points
     with frame 0 as frame 0 has (eq. 3: too similar): only the coverage rule maps it, and the frames between render
@@ -274,6 +276,7 @@ def test_rendering_poses_carry_the_bridge_correction_to_the_frames_after_a_view(
     np.testing.assert_allclose(rendering[3:], poses[3:], atol=1e-12)
 
 
+@pytest.mark.slow
 def test_reconstruct_writes_splats_and_rendering_metrics(synthetic_sequence_dir, tmp_path):
     config = Config()
     config.input.max_frames = 12
@@ -306,6 +309,7 @@ def test_reconstruct_writes_splats_and_rendering_metrics(synthetic_sequence_dir,
     assert result.metrics == metrics
 
 
+@pytest.mark.slow
 def test_the_bridge_lowers_the_joint_loss_of_the_orb_frontends_views(synthetic_sequence_dir, tmp_path):
     """With the ORB frontend's keyframes (matched map points and all), the refinement finds a lower joint loss than
     the frontend's pose. It once did not on any view: the points lifted from the keyframe itself pinned the pose."""
@@ -321,6 +325,7 @@ def test_the_bridge_lowers_the_joint_loss_of_the_orb_frontends_views(synthetic_s
     assert bridge["views_ate_rmse_m"]["rendering"] < 0.955 * bridge["views_ate_rmse_m"]["frontend"]
 
 
+@pytest.mark.slow
 def test_reconstruct_asks_the_frontend_for_keyframes_where_the_map_lacks_coverage(synthetic_sequence_dir, tmp_path):
     """An Open3D frontend set to make no keyframe after the first by itself: the coverage rule's requests make them."""
     config = Config()

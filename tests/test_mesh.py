@@ -57,6 +57,7 @@ def coarse_mesh(sequence_views):
     return fuse_tsdf_mesh(views, camera, MeshConfig(voxel_size_m=0.04, truncation_m=0.16, max_depth_m=MAX_DEPTH_M))
 
 
+@pytest.mark.slow
 def test_tsdf_mesh_lies_on_the_true_surface(sequence_views):
     """Chamfer distance to the seen part of the true surface under 1 cm at 1 cm voxels.
 

@@ -98,6 +98,7 @@ def test_camera_file_keys_of_an_unregistered_sensor(tmp_path):
         assert str(path) in str(error.value)
 
 
+@pytest.mark.slow
 def test_reconstruct_of_an_unregistered_sensor_tracks_and_renders_better_registered(unregistered_dir, tmp_path):
     """The same frames read as if registered (the colour_* keys dropped, as before this reader existed) against
     the registered reading: the rendering of the map improves by more than 2 dB and the trajectory error drops
@@ -115,5 +116,6 @@ def test_reconstruct_of_an_unregistered_sensor_tracks_and_renders_better_registe
         metrics[name] = json.loads((output / "metrics.json").read_text())
     registered, naive_metrics = metrics["registered"], metrics["naive"]
     psnr = {name: m["rendering"]["novel_views"]["psnr_db"] for name, m in metrics.items()}
+    # The run is deterministic (inline ORB mapping); the bounds keep most of what registering gains in it.
     assert psnr["registered"] > psnr["naive"] + 2.0, psnr
-    assert registered["trajectory"]["ate_rmse_m"] < naive_metrics["trajectory"]["ate_rmse_m"], metrics
+    assert registered["trajectory"]["ate_rmse_m"] < 0.5 * naive_metrics["trajectory"]["ate_rmse_m"], metrics
