@@ -366,6 +366,7 @@ def test_pixels_without_colour_data_pull_on_nothing():
     assert (stepped(0.0, None)["rgb"] - stepped(1.0, None)["rgb"]).abs().max() > 1e-3
 
 
+@pytest.mark.slow
 def test_more_rasteriser_threads_than_the_machine_has_run_on_what_it_has():
     """mapper.kernel_threads defaults to 2; numba refuses a count above its pool (1 on a one-core machine)."""
     code = ("import numba\nfrom tambridge.threads import compute_threads\n"
