@@ -66,7 +66,11 @@ def parse_tum_trajectory(text: str, source: str) -> Trajectory:
         if not np.all(np.isfinite(values)):
             raise TrajectoryFormatError(f"{source} line {number}: non-finite value")
         quaternion = values[4:8]
-        norm = np.linalg.norm(quaternion)
+        with np.errstate(over="ignore"):
+            norm = np.linalg.norm(quaternion)
+        if not np.isfinite(norm):  # components near 1e200: their squares overflow, so scale them down first
+            quaternion = quaternion / np.abs(quaternion).max()
+            norm = np.linalg.norm(quaternion)
         if norm < 1e-6:
             raise TrajectoryFormatError(f"{source} line {number}: zero quaternion")
         timestamps.append(values[0])

@@ -1,4 +1,8 @@
-"""Shared fixtures: small synthetic sequences with exact ground truth (no real data needed)."""
+"""Shared fixtures: small synthetic sequences with exact ground truth (no real data needed).
+
+``python -m pytest -m "not slow"`` runs the quick suite (under a minute on 2 cores); ``python -m pytest`` runs
+everything (under 10 minutes). Mark a test ``@pytest.mark.slow`` when it takes seconds (see setup.cfg).
+"""
 
 from pathlib import Path
 

@@ -69,6 +69,7 @@ def _kill_at_first_checkpoint(child: subprocess.Popen, checkpoint: Path, timeout
     child.wait()
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_to_the_uninterrupted_result(synthetic_sequence_dir, tmp_path):
     killed_dir, full_dir = tmp_path / "killed", tmp_path / "full"
     command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(synthetic_sequence_dir), "-o", str(killed_dir),
@@ -357,4 +358,5 @@ def test_orb_frontend_with_mapping_thread_checkpoints_between_frames(synthetic_s
     assert len(result.trajectory.timestamps_s) == len(sequence)
     assert len(result.keyframe_trajectory.timestamps_s) >= keyframes_before
     errors = evaluate_trajectory(result.trajectory, sequence.ground_truth)
-    assert errors.ate_rmse_m < 0.2
+    # As an uninterrupted run of these frames with the mapping thread (whose timing varies the result a little).
+    assert errors.ate_rmse_m < 0.05

@@ -17,6 +17,7 @@ from tambridge.io.tum import open_sequence
 from tambridge.trajectory import read_tum_trajectory
 
 
+@pytest.mark.slow
 def test_reconstruct_writes_outputs_and_a_real_ate(synthetic_sequence_dir, tmp_path):
     out = tmp_path / "out"
     result = CliRunner().invoke(
@@ -27,8 +28,9 @@ def test_reconstruct_writes_outputs_and_a_real_ate(synthetic_sequence_dir, tmp_p
     metrics = read_metrics(out / "metrics.json")
     assert metrics.frames == 30
     assert metrics.keyframes_culled == 0  # only the ORB frontend culls keyframes
-    # Frame-to-frame odometry on the noise-free 160x120 loop: measured 3.8 cm; drift keeps it above a few mm.
-    assert 0.001 < metrics.trajectory.ate_rmse_m < 0.08
+    # Frame-to-frame odometry drifts on the noise-free 160x120 loop (no loop closure): the error is centimetres,
+    # never the zero of a trajectory copied from the ground truth.
+    assert 0.028 < metrics.trajectory.ate_rmse_m < 0.048  # 1 cm either side of this deterministic run's
     trajectory = read_tum_trajectory(out / "trajectory.txt")
     assert len(trajectory) == 30
     config = yaml.safe_load((out / "config.yaml").read_text())
@@ -40,8 +42,8 @@ def test_stride_and_max_frames_reach_the_run(synthetic_sequence_dir, tmp_path):
     out = tmp_path / "out"
     result = CliRunner().invoke(
         main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--stride", "2", "--max-frames", "5",
-               "--set", "frontend.kind=open3d_f2f"]
-    )
+               "--set", "frontend.kind=open3d_f2f", "--set", "mapper.enabled=false", "--set", "mesh.enabled=false"]
+    )  # the frames a run reads are decided before mapping: no map is needed to see which ones it took
     assert result.exit_code == 0, result.output
     trajectory = read_tum_trajectory(out / "trajectory.txt")
     np.testing.assert_allclose(trajectory.timestamps_s, np.arange(0, 10, 2) / 30.0, atol=1e-6)

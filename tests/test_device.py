@@ -143,6 +143,7 @@ def _tensors_of(value) -> list[torch.Tensor]:
     return []
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(torch.cuda.is_available(), reason="on a GPU machine --gpu would run the whole benchmark")
 def test_run_all_gpu_without_a_gpu_stops_at_once(tmp_path):
     results = ROOT / "benchmarks" / "results" / "run_all.json"

@@ -1,6 +1,7 @@
 """Place recognition and pose graphs: the bag-of-words vocabulary and database, Open3D's pose-graph conventions."""
 
 import numpy as np
+import pytest
 
 from tambridge.frontend.orb.loop_closing import LoopConsistency
 from tambridge.frontend.pose_graph import PoseEdge, optimise_pose_graph
@@ -13,7 +14,43 @@ def test_shipped_vocabulary_is_small_and_loads():
     assert DEFAULT_VOCABULARY_PATH.stat().st_size < 1_000_000
     vocabulary = Vocabulary.load()
     assert vocabulary.centres.shape == (sum(vocabulary.branching**d for d in range(1, vocabulary.depth + 1)), 32)
-    assert vocabulary.idf.shape == (vocabulary.n_words,) and np.all(vocabulary.idf >= 0)
+    assert vocabulary.idf.shape == (vocabulary.n_words,)
+    # idf = log(N / n) with N training images and n in 1..N of them holding the word: the largest idf is log(N),
+    # and N / exp(idf) is a whole number of images for every word.
+    images = np.exp(vocabulary.idf.max())
+    assert images == pytest.approx(round(images), abs=1e-9) and round(images) > 1
+    containing = images / np.exp(vocabulary.idf)
+    np.testing.assert_allclose(containing, np.round(containing), atol=1e-9)
+    assert containing.max() <= images + 1e-9
+
+
+def test_idf_is_the_log_of_the_image_count_over_the_images_holding_the_word():
+    """Four far-apart descriptor clusters A-D (Hamming 128-256 between their patterns, 2 % bit noise within) in
+    images holding AB, AB, AC and AD: word A is in all 4 images, B in 2, C and D in 1."""
+    rng = np.random.default_rng(3)
+    patterns = {name: np.full(32, byte, np.uint8) for name, byte in zip("ABCD", (0x00, 0xFF, 0x0F, 0xF0))}
+
+    def noisy(name, count=10):
+        return patterns[name] ^ np.packbits(rng.random((count, 256)) < 0.02, axis=1)
+
+    images = [np.concatenate([noisy(name) for name in content]) for content in ("AB", "AB", "AC", "AD")]
+    vocabulary = train_vocabulary(images, branching=4, depth=1, iterations=5)
+    word = {name: vocabulary.words(noisy(name, 20)) for name in "ABCD"}
+    assert all(len(set(words.tolist())) == 1 for words in word.values())  # each cluster is one word
+    word = {name: int(words[0]) for name, words in word.items()}
+    assert sorted(word.values()) == [0, 1, 2, 3]
+    np.testing.assert_allclose([vocabulary.idf[word[name]] for name in "ABCD"],
+                               [np.log(4 / 4), np.log(4 / 2), np.log(4 / 1), np.log(4 / 1)], atol=1e-12)
+    # A word no training image reaches (a node with too few descriptors repeats its first centre) gets log(N).
+    a1, a2, b = np.zeros(32, np.uint8), np.zeros(32, np.uint8), np.full(32, 0xFF, np.uint8)
+    a2[0] = 0xFF  # 8 bits from a1: one branch of the first level, split at the second
+    images = [np.stack([a1] * 5 + [b]), np.stack([a1] * 5 + [a2] * 5)]
+    vocabulary = train_vocabulary(images, branching=2, depth=2, iterations=5)
+    words = {name: int(vocabulary.words(d[None])[0]) for name, d in (("a1", a1), ("a2", a2), ("b", b))}
+    assert len(set(words.values())) == 3
+    unseen = ({0, 1, 2, 3} - set(words.values())).pop()
+    np.testing.assert_allclose([vocabulary.idf[words["a1"]], vocabulary.idf[words["a2"]], vocabulary.idf[words["b"]],
+                                vocabulary.idf[unseen]], [0.0, np.log(2), np.log(2), np.log(2)], atol=1e-12)
 
 
 def test_trained_vocabulary_retrieves_the_same_place():

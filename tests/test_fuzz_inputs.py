@@ -1,16 +1,26 @@
-"""Fuzzed sequence folders: every malformed input gives a tambridge error naming the file, never a traceback."""
+"""Fuzzed sequence folders and trajectory text: each input gives either the right result or a tambridge error
+naming the file, the line and what is wrong, never a traceback.
+
+Each test states the reader's rules once, as an oracle (which line is the first bad one and why, which listed
+image is read first), and checks the reader against it on every generated input.
+"""
+
+import math
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from tambridge.errors import TambridgeError
-from tambridge.io.tum import open_sequence
+from tambridge.errors import SequenceFormatError, TrajectoryFormatError
+from tambridge.geometry import pose_from_tum
+from tambridge.io.tum import associate, open_sequence
 from tambridge.trajectory import parse_tum_trajectory
 
 CAMERA = "width 8\nheight 6\nfx 10\nfy 10\ncx 3.5\ncy 2.5\ndepth_scale 5000\n"
+RGB_VALUE, DEPTH_RAW = 90, 9000  # the fixture's images: grey colour, depth 9000 / 5000 = 1.8 m
 
 token = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True).map(repr),
@@ -18,6 +28,10 @@ token = st.one_of(
     st.text(alphabet="abc123./ \t#", max_size=8),
 )
 line = st.lists(token, min_size=0, max_size=4).map(" ".join)
+# Lines that parse: a timestamp on the fixture's association grid (1.0 and 1.001) or off it, and an existing image.
+listed_image = st.tuples(st.sampled_from(["1.0", "1.001", "1.01", "1.03", "2.0"]),
+                         st.sampled_from(["rgb/1.png", "depth/1.png", "rgb/2.png"])).map(" ".join)
+index_line = st.one_of(line, listed_image)
 
 
 @pytest.fixture(scope="module")
@@ -25,35 +39,153 @@ def image_folder(tmp_path_factory):
     folder = tmp_path_factory.mktemp("fuzz")
     (folder / "rgb").mkdir()
     (folder / "depth").mkdir()
-    cv2.imwrite(str(folder / "rgb/1.png"), np.full((6, 8, 3), 90, np.uint8))
-    cv2.imwrite(str(folder / "depth/1.png"), np.full((6, 8), 9000, np.uint16))
+    cv2.imwrite(str(folder / "rgb/1.png"), np.full((6, 8, 3), RGB_VALUE, np.uint8))
+    cv2.imwrite(str(folder / "depth/1.png"), np.full((6, 8), DEPTH_RAW, np.uint16))
     (folder / "camera.txt").write_text(CAMERA)
     return folder
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(rgb_lines=st.lists(line, max_size=5), depth_lines=st.lists(line, max_size=5))
-def test_garbage_index_files_give_errors_naming_the_file(image_folder, rgb_lines, depth_lines):
-    (image_folder / "rgb.txt").write_text("\n".join(["1.0 rgb/1.png", *rgb_lines]) + "\n")
-    (image_folder / "depth.txt").write_text("\n".join(["1.001 depth/1.png", *depth_lines]) + "\n")
-    try:
-        sequence = open_sequence(image_folder)
-        for index in range(len(sequence)):
-            sequence[index]
-    except TambridgeError as error:
-        assert "rgb.txt" in str(error) or "depth.txt" in str(error) or ".png" in str(error) or "camera" in str(error)
+def first_bad_index_line(path: Path, text: str) -> tuple[str, list[tuple[float, str]]]:
+    """``(error message start and phrase or "", entries sorted by time)`` for a ``timestamp filename`` list."""
+    entries = []
+    for number, raw in enumerate(text.splitlines(), start=1):
+        stripped = raw.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        parts = stripped.split()
+        where = f"{path} line {number}: "
+        if len(parts) < 2:
+            return where + "|expected 'timestamp filename'", []
+        try:
+            timestamp = float(parts[0])
+        except ValueError:
+            return where + "|is not a number", []
+        if not math.isfinite(timestamp):
+            return where + "|is not finite", []
+        entries.append((timestamp, parts[1]))
+    return "", sorted(entries, key=lambda entry: entry[0])
 
 
-@settings(max_examples=200, deadline=None)
-@given(lines=st.lists(line, max_size=6))
-def test_garbage_trajectory_text_gives_a_format_error(lines):
-    try:
-        trajectory = parse_tum_trajectory("\n".join(lines), "gt.txt")
-    except TambridgeError as error:
-        assert str(error).startswith("gt.txt")
+def image_kind(folder: Path, path: Path) -> str:
+    """Which of the fixture's two images a listed path is, or "missing"."""
+    if not path.is_file():
+        return "missing"
+    for kind in ("rgb", "depth"):
+        if path.resolve() == (folder / kind / "1.png").resolve():
+            return kind
+    raise AssertionError(f"{path}: the generated name hit a file outside the fixture")
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(rgb_lines=st.lists(index_line, max_size=5), depth_lines=st.lists(index_line, max_size=5))
+@example(rgb_lines=["rgb/1.png"], depth_lines=[])  # one column
+@example(rgb_lines=["0x10 rgb/1.png"], depth_lines=[])  # not a number
+@example(rgb_lines=[], depth_lines=["1e400 depth/1.png"])  # not finite
+@example(rgb_lines=["0.5 rgb/1.png"], depth_lines=["0.5 rgb/1.png"])  # first depth is a colour image
+@example(rgb_lines=["2.0 rgb/2.png"], depth_lines=["2.0 depth/1.png"])  # a listed colour image is missing
+@example(rgb_lines=["1.03 depth/1.png"], depth_lines=["1.03 depth/1.png", "# comment", ""])  # all readable
+def test_index_files_give_the_listed_frames_or_an_error_naming_file_and_line(image_folder, rgb_lines, depth_lines):
+    rgb_txt, depth_txt = image_folder / "rgb.txt", image_folder / "depth.txt"
+    rgb_txt.write_text("\n".join(["1.0 rgb/1.png", *rgb_lines]) + "\n")
+    depth_txt.write_text("\n".join(["1.001 depth/1.png", *depth_lines]) + "\n")
+
+    # The oracle. rgb.txt is read before depth.txt, each to its first bad line.
+    rgb_error, rgb_entries = first_bad_index_line(rgb_txt, rgb_txt.read_text())
+    depth_error, depth_entries = first_bad_index_line(depth_txt, depth_txt.read_text())
+    expected_error = rgb_error or depth_error
+    if not expected_error:
+        # Both lists hold the fixture's own 1.0 / 1.001 pair, so association always finds a frame.
+        pairs = associate(np.array([s for s, _ in rgb_entries]), np.array([s for s, _ in depth_entries]))
+        rgb_paths = [image_folder / rgb_entries[i][1] for i, _ in pairs]
+        depth_paths = [image_folder / depth_entries[j][1] for _, j in pairs]
+        # The first frame's depth is read on opening (the depth-scale check), then each frame's colour and depth.
+        reads = [("depth", depth_paths[0])] + [read for pair in zip(rgb_paths, depth_paths)
+                                               for read in (("rgb", pair[0]), ("depth", pair[1]))]
+        for wanted, path in reads:
+            kind = image_kind(image_folder, path)
+            if kind == "missing":
+                expected_error = f"{path}: |image listed in {wanted}.txt does not exist"
+            elif wanted == "depth" and kind == "rgb":
+                expected_error = f"{path}: |depth must be a single-channel 16-bit PNG"
+            if expected_error:  # (a depth PNG read as colour is a valid 8-bit grey image)
+                break
+
+    if expected_error:
+        start, phrase = expected_error.split("|")
+        with pytest.raises(SequenceFormatError) as raised:
+            sequence = open_sequence(image_folder)
+            for index in range(len(sequence)):
+                sequence[index]
+        message = str(raised.value)
+        assert message.startswith(start) and phrase in message and "\n" not in message, (message, expected_error)
     else:
-        assert np.all(np.diff(trajectory.timestamps_s) > 0)
-        assert np.all(np.isfinite(trajectory.world_from_camera))
+        sequence = open_sequence(image_folder)
+        assert len(sequence) == len(pairs)
+        np.testing.assert_array_equal(sequence.timestamps_s, [rgb_entries[i][0] for i, _ in pairs])
+        for index, path in enumerate(rgb_paths):
+            frame = sequence[index]
+            # A depth PNG listed as colour reads as grey 8-bit: the high byte of the raw value.
+            grey = RGB_VALUE if image_kind(image_folder, path) == "rgb" else DEPTH_RAW >> 8
+            assert (frame.rgb == grey).all() and frame.rgb.shape == (6, 8, 3)
+            np.testing.assert_allclose(frame.depth_m, DEPTH_RAW / 5000.0, rtol=1e-6)
+
+
+pose_line = st.lists(st.floats(-10.0, 10.0, allow_subnormal=False).map(repr), min_size=8, max_size=8).map(" ".join)
+
+
+def first_bad_trajectory_line(text: str, source: str) -> tuple[str, list[np.ndarray]]:
+    """``(error message start and phrase or "", the values of every pose line)`` of TUM trajectory text."""
+    rows = []
+    for number, raw in enumerate(text.splitlines(), start=1):
+        stripped = raw.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        parts = stripped.replace(",", " ").split()
+        where = f"{source} line {number}: "
+        if len(parts) != 8:
+            return where + f"|expected 8 columns 'timestamp tx ty tz qx qy qz qw', got {len(parts)}", []
+        try:
+            values = np.array([float(part) for part in parts])
+        except ValueError:
+            return where + "|could not convert string to float", []
+        if not np.isfinite(values).all():
+            return where + "|non-finite value", []
+        largest = np.abs(values[4:]).max()  # |q| = largest * |q / largest|: no overflow for huge components
+        if largest == 0.0 or largest * np.linalg.norm(values[4:] / largest) < 1e-6:
+            return where + "|zero quaternion", []
+        rows.append(values)
+    if not rows:
+        return f"{source}: |no poses", []
+    return "", rows
+
+
+@settings(max_examples=300, deadline=None)
+@given(lines=st.lists(st.one_of(line, pose_line), max_size=6))
+@example(lines=["1 0 0 0 0 0 0 0"])  # zero quaternion
+@example(lines=["1 0 0 0 1e200 1e200 0 0"])  # a quaternion whose squared norm overflows: still a direction
+@example(lines=["2 1 2 3 0 0 0 1", "1 4 5 6 0 0 1 0", "2 7 8 9 1 0 0 0"])  # out of order, one stamp twice
+def test_trajectory_text_gives_the_sorted_poses_or_an_error_naming_file_and_line(lines):
+    text = "\n".join(lines)
+    expected_error, rows = first_bad_trajectory_line(text, "gt.txt")
+    if expected_error:
+        start, phrase = expected_error.split("|")
+        with pytest.raises(TrajectoryFormatError) as raised:
+            parse_tum_trajectory(text, "gt.txt")
+        message = str(raised.value)
+        assert message.startswith(start) and phrase in message and "\n" not in message, (message, expected_error)
+        return
+    trajectory = parse_tum_trajectory(text, "gt.txt")
+    # Sorted by time; of poses with the same stamp the first in the file is kept.
+    kept = {}
+    for values in rows:
+        kept.setdefault(values[0], values)
+    stamps = sorted(kept)
+    np.testing.assert_array_equal(trajectory.timestamps_s, stamps)
+    for pose, stamp in zip(trajectory.world_from_camera, stamps):
+        quaternion = kept[stamp][4:] / np.abs(kept[stamp][4:]).max()
+        np.testing.assert_allclose(pose, pose_from_tum(kept[stamp][1:4], quaternion / np.linalg.norm(quaternion)),
+                                   atol=1e-9)
+        np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-9)
 
 
 @pytest.mark.parametrize("fraction", [0.0, 0.3, 0.8, 0.97])
@@ -72,5 +204,13 @@ def test_truncated_images_are_named(tmp_path, kind, fraction):
     damaged = folder / (rgb_name if kind.startswith("rgb") else "depth/1.png")
     data = damaged.read_bytes()
     damaged.write_bytes(data[: int(len(data) * fraction)])
-    with pytest.raises(TambridgeError, match=str(damaged.name).replace(".", r"\.")):
+    # An empty file, a JPEG without its end marker, or a PNG that does not decode: each names the damaged file.
+    if fraction == 0.0:
+        reason = "empty file"
+    elif kind == "rgb.jpg":
+        reason = "JPEG has no end marker"
+    else:
+        reason = "cannot decode image"
+    with pytest.raises(SequenceFormatError) as raised:
         open_sequence(folder)[0]
+    assert str(raised.value).startswith(f"{damaged}: {reason}"), str(raised.value)

@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -121,13 +122,12 @@ def test_exposure_of_a_darker_view_is_recovered_and_the_map_keeps_the_first_view
             gaussian_map.optimise(camera, views[:1], [0] * 20, exposures[:1])
     gaussian_map.optimise(camera, views, [0, 1] * 100, exposures)
     recovered_gain = torch.exp(exposures[1].parameters[0]).detach()
-    # Measured: gains 0.82-0.84, biases -0.01, -0.01, +0.03 (without compensation the map would average the
-    # two views); the frozen view stays at the identity.
+    # Without compensation the map would average the two views; the frozen view stays at the identity.
     torch.testing.assert_close(recovered_gain, gain, atol=0.05, rtol=0)
     torch.testing.assert_close(exposures[1].parameters[1].detach(), bias, atol=0.03, rtol=0)
     assert torch.equal(exposures[0].parameters, torch.zeros(2, 3))
     first = gaussian_map.render(camera, views[0][0]).rgb
-    assert float((first - views[0][1].rgb).abs().mean()) < 0.05
+    assert float((first - views[0][1].rgb).abs().mean()) < 0.03
 
 
 def test_densify_mask_on_a_hand_made_render():
@@ -178,6 +178,7 @@ class GroundTruthFrontend:
         return KeyframeEvent(keyframe_id, frame_index, 0.0, pose, np.zeros((0, 3)), np.zeros((0, 2)), np.zeros(0, np.int64), 0, 0)
 
 
+@pytest.mark.slow
 def test_mapping_a_synthetic_sequence_at_ground_truth_poses(synthetic_sequence_dir, tmp_path):
     sequence = open_sequence(synthetic_sequence_dir)
     config = Config()
@@ -208,11 +209,14 @@ def test_mapping_a_synthetic_sequence_at_ground_truth_poses(synthetic_sequence_d
         np.testing.assert_array_equal(means_after[~rows], means_before[~rows])
     finally:
         run_log.close()
-    # Measured: held-out frames 25.6 dB PSNR / 0.892 SSIM, mapping views 27.2 dB / 0.917 (10 views, 10 steps each).
-    assert scores["psnr_db"] > 24.0 and scores["ssim"] > 0.85
-    assert views["psnr_db"] > 25.5 and views["ssim"] > 0.88
+    # 10 views, 10 steps each; the bounds lie 1 dB and 0.02 SSIM under this run's scores (mapping is deterministic).
+    assert scores["frames"] == 4 and views["frames"] == 3
+    assert scores["psnr_db"] > 24.6 and scores["ssim"] > 0.87
+    assert views["psnr_db"] > 26.2 and views["ssim"] > 0.90
+    assert views["psnr_db"] > scores["psnr_db"]  # the mapped frames render better than the held-out ones
 
 
+@pytest.mark.slow
 def test_coverage_rule_maps_a_keyframe_that_eq_3_rejects_and_asks_for_one_in_a_gap(synthetic_sequence_dir, tmp_path):
     """Frames 0 and 8 of the fast 30-frame loop as keyframes at ground-truth poses, frame 8 sharing as many points
     with frame 0 as frame 0 has (eq. 3: too similar): only the coverage rule maps it, and the frames between render
@@ -244,8 +248,9 @@ def test_coverage_rule_maps_a_keyframe_that_eq_3_rejects_and_asks_for_one_in_a_g
         selections = [view.selection for view in stage.views]
         assert selections == ([Selection.FIRST] if not unexplained else [Selection.FIRST, Selection.UNCOVERED])
     assert requests == {0.0: [False] * 4, MapperConfig().coverage_unexplained: [False, False, False, True]}
-    # Measured 9.9 -> 18.7 dB (frame 0 alone leaves over half of frames 4 and 6 unexplained).
-    assert psnr_db[MapperConfig().coverage_unexplained] > psnr_db[0.0] + 5.0
+    # Frame 0 alone leaves over half of frames 4 and 6 unexplained; the bounds lie 1 dB inside this run's scores.
+    assert psnr_db[0.0] < 10.9
+    assert psnr_db[MapperConfig().coverage_unexplained] > 18.1
 
 
 def test_rendering_poses_carry_the_bridge_correction_to_the_frames_after_a_view(synthetic_sequence_dir, tmp_path):
@@ -269,25 +274,41 @@ def test_rendering_poses_carry_the_bridge_correction_to_the_frames_after_a_view(
     np.testing.assert_allclose(rendering[3:], poses[3:], atol=1e-12)
 
 
+@pytest.mark.slow
 def test_reconstruct_writes_splats_and_rendering_metrics(synthetic_sequence_dir, tmp_path):
     config = Config()
     config.input.max_frames = 12
     config.frontend.kind = "open3d_f2f"
     config.mesh.enabled = False
+    started = time.perf_counter()
     result = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False)
+    wall_s = time.perf_counter() - started
     metrics = read_metrics(tmp_path / "out" / "metrics.json")
     splats = load_ply(tmp_path / "out" / "splats.ply")
     assert len(splats) == metrics.map.gaussians > 1000
     rendering = metrics.map.rendering
-    assert rendering.novel_views.frames + rendering.mapping_views.frames >= 3
-    for scores in (rendering.novel_views, rendering.mapping_views):
-        assert 10.0 < scores.psnr_db < 60.0 and 0.0 < scores.ssim <= 1.0 and scores.lpips is None
+    # Every view (each keyframe of this frontend) is scored as a mapping view, every fifth frame that is not one as
+    # a novel view.
+    keyframe_frames = {round(t * 30) for t in np.loadtxt(tmp_path / "out" / "keyframes.txt", ndmin=2)[:, 0]}
+    assert rendering.mapping_views.frames == metrics.map.mapping_views == len(keyframe_frames)
+    novel = evaluation_frames(12, config.evaluation.novel_view_every, keyframe_frames)
+    assert rendering.novel_views.frames == len(novel) >= 1
+    # Frame-to-frame odometry with drift under the map: the bounds lie 1 dB and 0.05 SSIM under this run's scores
+    # (the run is deterministic), far below what a map at exact poses gives.
+    assert rendering.novel_views.psnr_db > 19.5 and rendering.novel_views.ssim > 0.46
+    assert rendering.mapping_views.psnr_db > 18.9 and rendering.mapping_views.ssim > 0.40
+    assert rendering.novel_views.lpips is None and rendering.mapping_views.lpips is None
     selections = metrics.map.bridge.view_selection
     assert metrics.map.mapping_views == selections["FIRST"] + selections["NO_SPARSE_MAP"]
-    assert {"tracking", "mapping", "evaluation"} <= set(metrics.seconds_per_stage)
-    assert metrics.fps_end_to_end > 0 and result.metrics == metrics
+    stages = metrics.seconds_per_stage
+    assert {"tracking", "mapping", "evaluation"} <= set(stages) and all(seconds > 0 for seconds in stages.values())
+    # End to end runs from the start to the outputs, before the rendering evaluation, within the call.
+    assert metrics.seconds_total + stages["evaluation"] <= wall_s
+    assert metrics.fps_end_to_end == pytest.approx(metrics.frames / metrics.seconds_total, rel=1e-12)
+    assert result.metrics == metrics
 
 
+@pytest.mark.slow
 def test_the_bridge_lowers_the_joint_loss_of_the_orb_frontends_views(synthetic_sequence_dir, tmp_path):
     """With the ORB frontend's keyframes (matched map points and all), the refinement finds a lower joint loss than
     the frontend's pose. It once did not on any view: the points lifted from the keyframe itself pinned the pose."""
@@ -297,11 +318,13 @@ def test_the_bridge_lowers_the_joint_loss_of_the_orb_frontends_views(synthetic_s
     metrics = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False).metrics
     bridge = metrics.map.bridge
     assert bridge.refined_views >= 1
-    # Measured: 0.454 -> 0.450 over 10 views, and their ATE 1.90 -> 1.80 cm; with the bug: 0.1725 -> 0.1725, ATE equal.
-    assert bridge.mean_loss_final < 0.995 * bridge.mean_loss_initial
-    assert bridge.views_ate_rmse_m.rendering != bridge.views_ate_rmse_m.frontend
+    # With the bug loss and ATE stayed where they were. The bounds keep three quarters of what this run gains (the
+    # run is deterministic): the refined views lie nearer the truth than the frontend's keyframes.
+    assert bridge.mean_loss_final < 0.993 * bridge.mean_loss_initial
+    assert bridge.views_ate_rmse_m.rendering < 0.955 * bridge.views_ate_rmse_m.frontend
 
 
+@pytest.mark.slow
 def test_reconstruct_asks_the_frontend_for_keyframes_where_the_map_lacks_coverage(synthetic_sequence_dir, tmp_path):
     """An Open3D frontend set to make no keyframe after the first by itself: the coverage rule's requests make them."""
     config = Config()
@@ -312,8 +335,10 @@ def test_reconstruct_asks_the_frontend_for_keyframes_where_the_map_lacks_coverag
     config.frontend.open3d.keyframe_max_frames = 100
     config.mesh.enabled = False
     metrics = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False).metrics
-    # Measured 4 keyframes (frames 0, 3, 6, 9: the first check, 2 frames after a keyframe, finds the map lacking).
-    assert metrics.keyframes == metrics.map.mapping_views >= 3
+    # The first check, 2 frames after a keyframe, finds the map lacking each time: the next frame is a keyframe.
+    keyframe_frames = np.loadtxt(tmp_path / "out" / "keyframes.txt", ndmin=2)[:, 0] * 30
+    np.testing.assert_allclose(keyframe_frames, [0, 3, 6, 9], atol=1e-3)
+    assert metrics.keyframes == metrics.map.mapping_views == 4
     assert metrics.seconds_per_stage["coverage"] > 0
 
 
@@ -340,6 +365,7 @@ def test_pixels_without_colour_data_pull_on_nothing():
     assert (stepped(0.0, None)["rgb"] - stepped(1.0, None)["rgb"]).abs().max() > 1e-3
 
 
+@pytest.mark.slow
 def test_more_rasteriser_threads_than_the_machine_has_run_on_what_it_has():
     """mapper.kernel_threads defaults to 2; numba refuses a count above its pool (1 on a one-core machine)."""
     code = ("import numba\nfrom tambridge.threads import compute_threads\n"

@@ -62,8 +62,9 @@ def coarse_mesh(sequence_views):
     return fuse_tsdf_mesh(views, camera, MeshConfig(voxel_size_m=0.04, truncation_m=0.16, max_depth_m=MAX_DEPTH_M))
 
 
+@pytest.mark.slow
 def test_tsdf_mesh_lies_on_the_true_surface(sequence_views):
-    """Chamfer distance to the seen part of the true surface under 1 cm at 1 cm voxels (measured: 0.53 cm).
+    """Chamfer distance to the seen part of the true surface under 1 cm at 1 cm voxels.
 
     The true surface is sampled on a 1 cm grid, which alone puts ~4 mm into the mesh -> truth half; the exact
     distance to the planes is checked in the next test.
@@ -77,7 +78,8 @@ def test_tsdf_mesh_lies_on_the_true_surface(sequence_views):
     completeness_m, _ = cKDTree(mesh_points).query(truth)
     chamfer_m = 0.5 * (accuracy_m.mean() + completeness_m.mean())
     assert chamfer_m < 0.01, chamfer_m
-    # The mesh covers what the views saw (measured: 94% of the seen points within 2 cm of it).
+    # The mesh covers what the views saw: nine in ten of the seen points lie within 2 cm of it.
+    completeness_m, _ = cKDTree(mesh_points).query(truth)
     assert np.mean(completeness_m < 0.02) > 0.9
 
 

@@ -52,7 +52,8 @@ def camera_of(width: int, height: int) -> Camera:
 
 # (count, width, height, opacity logit mean, largest radius in metres): image sizes that are not tile multiples; the
 # last case is opaque and deep enough that the alpha clamp and the early stop (T < 1e-4) happen at many pixels.
-CASES = [(60, 16, 16, 0.0, 0.06), (400, 40, 30, 0.0, 0.06), (2000, 70, 45, 0.0, 0.06), (1500, 48, 36, 5.0, 0.2)]
+CASES = [(60, 16, 16, 0.0, 0.06), (400, 40, 30, 0.0, 0.06), pytest.param(2000, 70, 45, 0.0, 0.06, marks=pytest.mark.slow),
+         (1500, 48, 36, 5.0, 0.2)]
 
 
 @pytest.mark.parametrize("count,width,height,opacity_logit_mean,largest_radius_m", CASES)

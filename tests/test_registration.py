@@ -98,11 +98,11 @@ def test_camera_file_keys_of_an_unregistered_sensor(tmp_path):
         assert str(path) in str(error.value)
 
 
+@pytest.mark.slow
 def test_reconstruct_of_an_unregistered_sensor_tracks_and_renders_better_registered(unregistered_dir, tmp_path):
     """The same frames read as if registered (the colour_* keys dropped, as before this reader existed) against
     the registered reading: the rendering of the map improves by more than 2 dB and the trajectory error drops
-    (measured 22.4 against 19.5 dB, 5.7 against 12.9 cm; at 30 frames a loop moves 7 cm a frame, and a natively
-    registered sequence of this size gives 5.1 cm)."""
+    (at 30 frames a loop moves 7 cm a frame, so neither reading tracks as well as a longer sequence would)."""
     sensor_values = yaml.safe_load((unregistered_dir / "camera.yaml").read_text())
     naive = tmp_path / "naive.yaml"
     naive.write_text(yaml.safe_dump({k: v for k, v in sensor_values.items() if not k.startswith("colour_")}))
@@ -116,5 +116,6 @@ def test_reconstruct_of_an_unregistered_sensor_tracks_and_renders_better_registe
         metrics[name] = read_metrics(output / "metrics.json")
     registered, naive_metrics = metrics["registered"], metrics["naive"]
     psnr = {name: m.map.rendering.novel_views.psnr_db for name, m in metrics.items()}
+    # The run is deterministic (inline ORB mapping); the bounds keep most of what registering gains in it.
     assert psnr["registered"] > psnr["naive"] + 2.0, psnr
-    assert registered.trajectory.ate_rmse_m < naive_metrics.trajectory.ate_rmse_m, metrics
+    assert registered.trajectory.ate_rmse_m < 0.5 * naive_metrics.trajectory.ate_rmse_m, metrics

@@ -87,6 +87,7 @@ def _perturbed(reference: Trajectory, seed: int, sigma_m: float, scale: float = 
     return Trajectory(reference.timestamps_s, np.stack(poses))
 
 
+@pytest.mark.slow
 def test_full_report_loads_every_image(browser, tmp_path):
     from tambridge.io.synthetic import loop_path
 

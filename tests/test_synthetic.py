@@ -53,7 +53,8 @@ def test_ground_truth_is_a_closed_loop_and_colour_is_textured(synthetic_sequence
     assert np.linalg.norm(positions[-1] - positions[0]) < 2 * steps.max()
     assert len(sequence) == 30 and sequence.camera.width == 160
     frame = sequence[0]
-    assert (frame.depth_m > 0).all() and 0.5 < np.median(frame.depth_m) < 6.0
+    # Every ray hits the room (no holes); the camera looks across the 6 m room, most of the view on its far side.
+    assert (frame.depth_m > 1.0).all() and frame.depth_m.max() < 4.0 and 3.0 < np.median(frame.depth_m) < 3.5
     assert frame.rgb.std() > 20
 
 

@@ -6,6 +6,7 @@ import re
 import shutil
 
 import numpy as np
+import pytest
 
 from pipelines.reconstruct import reconstruct
 from tambridge.config import load_config
@@ -34,6 +35,7 @@ def test_blank_frames_are_invalid_depth_and_black_colour(synthetic_sequence_dir,
     assert np.array_equal(damaged[4].rgb, clean[4].rgb)
 
 
+@pytest.mark.slow
 def test_run_counts_lost_frames_and_recovers(synthetic_sequence_dir, tmp_path):
     folder = tmp_path / "damaged"
     shutil.copytree(synthetic_sequence_dir, folder)
