@@ -47,7 +47,7 @@ def image_folder(tmp_path_factory):
 
 def first_bad_index_line(path: Path, text: str) -> tuple[str, list[tuple[float, str]]]:
     """``(error message start and phrase or "", entries sorted by time)`` for a ``timestamp filename`` list."""
-    entries = []
+    entries, first_line = [], {}
     for number, raw in enumerate(text.splitlines(), start=1):
         stripped = raw.strip()
         if not stripped or stripped.startswith("#"):
@@ -62,6 +62,9 @@ def first_bad_index_line(path: Path, text: str) -> tuple[str, list[tuple[float, 
             return where + "|is not a number", []
         if not math.isfinite(timestamp):
             return where + "|is not finite", []
+        if timestamp in first_line:
+            return where + f"|is already listed on line {first_line[timestamp]}", []
+        first_line[timestamp] = number
         entries.append((timestamp, parts[1]))
     return "", sorted(entries, key=lambda entry: entry[0])
 
@@ -84,6 +87,7 @@ def image_kind(folder: Path, path: Path) -> str:
 @example(rgb_lines=["0.5 rgb/1.png"], depth_lines=["0.5 rgb/1.png"])  # first depth is a colour image
 @example(rgb_lines=["2.0 rgb/2.png"], depth_lines=["2.0 depth/1.png"])  # a listed colour image is missing
 @example(rgb_lines=["1.03 depth/1.png"], depth_lines=["1.03 depth/1.png", "# comment", ""])  # all readable
+@example(rgb_lines=[], depth_lines=["1.001 rgb/1.png"])  # a frame listed twice
 def test_index_files_give_the_listed_frames_or_an_error_naming_file_and_line(image_folder, rgb_lines, depth_lines):
     rgb_txt, depth_txt = image_folder / "rgb.txt", image_folder / "depth.txt"
     rgb_txt.write_text("\n".join(["1.0 rgb/1.png", *rgb_lines]) + "\n")
