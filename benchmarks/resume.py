@@ -1,12 +1,14 @@
-"""Kill a ``reconstruct`` run with SIGKILL, resume it with ``--resume``, and compare with an uninterrupted run.
+"""Kill a ``reconstruct`` run with SIGKILL at several moments, resume each with ``--resume``, and compare with an
+uninterrupted run: what a user who never planned for a crash gets back.
 
-    python benchmarks/resume.py                                   # 7-Scenes, 120 frames, inline ORB mapping
-    python benchmarks/resume.py --extra --set frontend.orb.mapping_thread=true
+    python benchmarks/resume.py --sequence DATA/7scenes_redkitchen_0-699 --camera configs/cameras/7scenes_kinect.yaml
 
-The killed run checkpoints every ``--every`` keyframes and is killed once a checkpoint at frame ``--kill-after``
-or later exists. Both runs use the default preset with ``mesh.enabled=false``. Prints the largest position
-difference between the two trajectories, ATE, novel-view PSNR and the checkpoint's size, and writes
-benchmarks/results/resume.json.
+Every run uses the default preset and the default checkpoint settings, with ``mesh.enabled=false`` and the ORB
+frontend's keyframe work inline (``frontend.orb.mapping_thread=false``) so that runs are deterministic and a resumed
+run can be compared pose by pose. The uninterrupted run comes first; the kills fall at ``--moments`` (fractions of
+its wall time). Prints, per kill, where the checkpoint was, the largest position difference of the resumed
+trajectory to the uninterrupted one and the checkpoint's size; and the uninterrupted run's checkpoint overhead
+(its ``checkpoint`` stage over its end-to-end seconds). Writes benchmarks/results/resume.json.
 """
 
 from __future__ import annotations
@@ -28,70 +30,78 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tambridge.checkpoint import checkpoint_path, load_checkpoint
+from tambridge.checkpoint import checkpoint_path, find_checkpoint  # noqa: E402
 from tambridge.errors import CheckpointError  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
-DEFAULT_SEQUENCE = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699"
 
-
-def checkpoint_frame(path: Path) -> int:
-    """The next frame of the checkpoint at ``path``, -1 when there is none (yet)."""
+def checkpoint_frame(path: Path) -> int | None:
+    """The next frame of the checkpoint at ``path``; None where there is none (or it is being replaced)."""
     try:
-        return load_checkpoint(path).next_frame
+        checkpoint = find_checkpoint(path)
     except CheckpointError:
-        return -1
+        return None
+    return None if checkpoint is None else checkpoint.next_frame
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sequence", type=Path, default=DEFAULT_SEQUENCE)
-    parser.add_argument("--frames", type=int, default=120)
-    parser.add_argument("--every", type=int, default=4, help="checkpoint.every_keyframes")
-    parser.add_argument("--kill-after", type=int, default=60, help="kill once a checkpoint at this frame exists")
+    parser.add_argument("--sequence", type=Path, required=True)
+    parser.add_argument("--camera", type=Path, help="camera file of the sequence (7-Scenes: configs/cameras/7scenes_kinect.yaml)")
+    parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument("--moments", type=float, nargs="+", default=[0.1, 0.3, 0.5, 0.7, 0.9],
+                        help="when to kill, as fractions of the uninterrupted run's wall time")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "resume.json")
-    parser.add_argument("--extra", nargs=argparse.REMAINDER, default=["--set", "frontend.orb.mapping_thread=false"],
-                        help="further reconstruct options (last on the line)")
     arguments = parser.parse_args()
     options = ["--quiet", "--max-frames", str(arguments.frames), "--set", "mesh.enabled=false",
-               "--set", f"checkpoint.every_keyframes={arguments.every}", *arguments.extra]
+               "--set", "frontend.orb.mapping_thread=false",
+               *(["--camera", str(arguments.camera)] if arguments.camera else [])]
     command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(arguments.sequence)]
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
               "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-              "command": " ".join(["python", "benchmarks/resume.py", *sys.argv[1:]]), "options": options}
+              "load_average": os.getloadavg()[0],
+              "command": " ".join(["python", "benchmarks/resume.py", *sys.argv[1:]]), "options": options, "kills": []}
     with tempfile.TemporaryDirectory(prefix="tambridge-resume-") as temp:
-        killed, full = Path(temp) / "killed", Path(temp) / "full"
+        full = Path(temp) / "full"
         started = time.perf_counter()
-        child = subprocess.Popen([*command, "-o", str(killed), *options], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        while child.poll() is None and checkpoint_frame(checkpoint_path(killed)) < arguments.kill_after:
-            time.sleep(0.5)
-        child.send_signal(signal.SIGKILL)
-        child.wait()
-        if child.returncode != -signal.SIGKILL:
-            sys.exit(f"the run ended (exit {child.returncode}) before it could be killed; lower --kill-after")
-        checkpoint = checkpoint_path(killed)
-        result.update(killed_after_s=time.perf_counter() - started, checkpoint_frame=checkpoint_frame(checkpoint),
-                      checkpoint_mb=checkpoint.stat().st_size / 1e6,
-                      outputs_after_kill=sorted(p.name for p in killed.iterdir()))
-        print(f"killed after {result['killed_after_s']:.0f} s at the checkpoint of frame {result['checkpoint_frame']} "
-              f"({result['checkpoint_mb']:.1f} MB); left: {', '.join(result['outputs_after_kill'])}", flush=True)
-        for name, out, extra in (("resumed", killed, ["--resume"]), ("uninterrupted", full, [])):
-            started = time.perf_counter()
-            subprocess.run([*command, "-o", str(out), *options, *extra], check=True, stdout=subprocess.DEVNULL,
-                           stderr=subprocess.DEVNULL)
-            metrics = read_metrics(out / "metrics.json")
-            result[name] = {"wall_seconds": time.perf_counter() - started,
-                            "ate_cm": metrics.trajectory.ate_rmse_m * 100.0,
-                            "novel_psnr_db": metrics.map.rendering.novel_views.psnr_db,
-                            "gaussians": metrics.map.gaussians, "keyframes": metrics.keyframes,
-                            "checkpoint_seconds": metrics.seconds_per_stage.get("checkpoint", 0.0)}
-            print(f"{name}: {result[name]}", flush=True)
-        positions = [np.loadtxt(out / "trajectory.txt")[:, 1:4] for out in (killed, full)]
-        result["max_position_difference_m"] = float(np.abs(positions[0] - positions[1]).max())
-    print(f"largest position difference: {result['max_position_difference_m'] * 1000:.3f} mm; novel-view PSNR "
-          f"{result['resumed']['novel_psnr_db']:.3f} dB resumed, {result['uninterrupted']['novel_psnr_db']:.3f} dB uninterrupted")
+        subprocess.run([*command, "-o", str(full), *options], check=True, stdout=subprocess.DEVNULL)
+        full_wall_s = time.perf_counter() - started
+        metrics = read_metrics(full / "metrics.json")
+        checkpoint_s = metrics.seconds_per_stage.get("checkpoint", 0.0)
+        result["uninterrupted"] = {"wall_seconds": full_wall_s, "seconds_total": metrics.seconds_total,
+                                   "checkpoint_seconds": checkpoint_s,
+                                   "checkpoint_share": checkpoint_s / metrics.seconds_total,
+                                   "keyframes": metrics.keyframes, "gaussians": metrics.map.gaussians}
+        print(f"uninterrupted: {full_wall_s:.0f} s, {metrics.keyframes} keyframes; checkpoints {checkpoint_s:.2f} s = "
+              f"{100 * checkpoint_s / metrics.seconds_total:.2f} % of {metrics.seconds_total:.0f} s end to end", flush=True)
+        reference = np.loadtxt(full / "trajectory.txt")
+        print(f"{'kill at':>8} {'checkpoint frame':>17} {'checkpoint MB':>14} {'max position diff (mm)':>23} "
+              f"{'same timestamps':>16}")
+        for moment in arguments.moments:
+            out = Path(temp) / f"killed_{moment:.2f}"
+            child = subprocess.Popen([*command, "-o", str(out), *options], stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.DEVNULL)
+            try:
+                child.wait(timeout=moment * full_wall_s)
+                sys.exit(f"the run at {moment:.2f} ended (exit {child.returncode}) before it could be killed")
+            except subprocess.TimeoutExpired:
+                child.send_signal(signal.SIGKILL)
+                child.wait()
+            frame = checkpoint_frame(checkpoint_path(out))
+            size_mb = checkpoint_path(out).stat().st_size / 1e6 if frame is not None else 0.0
+            subprocess.run([*command, "-o", str(out), *options, "--resume"], check=True, stdout=subprocess.DEVNULL)
+            resumed = np.loadtxt(out / "trajectory.txt")
+            same_stamps = resumed.shape == reference.shape and bool(np.array_equal(resumed[:, 0], reference[:, 0]))
+            difference_m = float(np.abs(resumed[:, 1:4] - reference[:, 1:4]).max()) if same_stamps else float("nan")
+            row = {"moment": moment, "killed_after_s": moment * full_wall_s, "checkpoint_frame": frame,
+                   "checkpoint_mb": size_mb, "max_position_difference_m": difference_m,
+                   "every_frame_posed": same_stamps}
+            result["kills"].append(row)
+            print(f"{moment:>8.2f} {str(frame):>17} {size_mb:>14.1f} {difference_m * 1000:>23.6f} {str(same_stamps):>16}",
+                  flush=True)
     atomic_write_text(arguments.output, json.dumps(result, indent=2) + "\n")
+    print(f"wrote {arguments.output}")
 
 
 if __name__ == "__main__":

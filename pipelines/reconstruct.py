@@ -23,7 +23,7 @@ from tambridge.checkpoint import (
     KeyframeCheckpoints,
     check_resumable,
     checkpoint_path,
-    load_checkpoint,
+    find_checkpoint,
     sequence_fingerprint,
 )
 from tambridge.config import Config, check_config, config_for_camera, to_dict, to_yaml
@@ -107,7 +107,8 @@ def reconstruct(
     output_dir = Path(output_dir)
     checkpoint_file = checkpoint_path(output_dir)
     check_output_folder(output_dir, start, [str(checkpoint_file.relative_to(output_dir))])
-    checkpoint = load_checkpoint(checkpoint_file) if start is Start.RESUME else None
+    # A run killed before its first checkpoint resumes from the first frame: --resume always ends with every pose.
+    checkpoint = find_checkpoint(checkpoint_file) if start is Start.RESUME else None
     read_started = time.perf_counter()
     sequence = open_sequence(
         sequence_dir,
@@ -132,6 +133,9 @@ def reconstruct(
         mapping = MappingStage(sequence, config, run_log, device) if config.mapper.enabled else None
         logger.info("Gaussian map, bridge and rendering evaluation on %s", device if mapping is not None else "(mapper off)")
         counters = RunCounters()
+        if start is Start.RESUME and checkpoint is None:
+            logger.warning("%s: no checkpoint (the run was stopped before its first one): starting from the first frame",
+                           checkpoint_file)
         start_frame = 0 if checkpoint is None else restore_run(checkpoint, frontend, mapping, run_log, counters)
         checkpoints = None
         if config.checkpoint.every_keyframes:

@@ -268,6 +268,15 @@ def _read_checkpoint(path: Path) -> Checkpoint:
     return Checkpoint(**fields, version=version)
 
 
+def find_checkpoint(path: Path) -> Checkpoint | None:
+    """The checkpoint at ``path`` (:func:`load_checkpoint`), or None where a run left none (it was killed before its
+    first one); a pickle of an older tambridge is refused, never read."""
+    path = Path(path)
+    if not path.is_file() and not path.with_name(PICKLE_CHECKPOINT_NAME).is_file():
+        return None
+    return load_checkpoint(path)
+
+
 def load_checkpoint(path: Path) -> Checkpoint:
     """Read a checkpoint written by :func:`save_checkpoint`; a one-line :class:`CheckpointError` naming the file
     and how to start over when it is missing, truncated, of another version or not a tambridge checkpoint."""

@@ -51,7 +51,12 @@ def check_output_folder(path: Path, start: Start, resumable: Iterable[str]) -> N
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise OutputFolderError(f"{path}: is a file, not a folder; give -o a folder (new or from an earlier run)")
-    if not path.is_dir() or start is not Start.NEW:
+    if not path.is_dir() or start is Start.OVERWRITE:
+        return
+    if start is Start.RESUME:
+        if (path / FINISHED_MARKER).is_file():
+            raise OutputFolderError(f"{path}: holds a finished run ({FINISHED_MARKER}); nothing to resume: pass "
+                                    f"--overwrite to run it again, or give another -o")
         return
     if (path / FINISHED_MARKER).is_file():
         raise OutputFolderError(f"{path}: holds a finished run ({FINISHED_MARKER}); pass --overwrite to replace it, "

@@ -297,15 +297,32 @@ def test_state_encoding_round_trips_types_and_shared_objects():
         encode_state({"edges": [edge, PoseEdge(0, 1, np.eye(4), object())]}, types)
 
 
-def test_cli_resume_without_checkpoint_names_the_file_and_keeps_results(synthetic_sequence_dir, tmp_path):
+def test_cli_resume_of_a_finished_run_is_refused_and_keeps_results(synthetic_sequence_dir, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "metrics.json").write_text("{}")  # a finished run's results
     result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--resume",
                                        "--set", "mapper.enabled=false"])
     assert result.exit_code == 2
-    assert "checkpoint.npz: no checkpoint to resume from" in result.output
+    assert result.output.strip() == f"error: {out}: holds a finished run (metrics.json); nothing to resume: pass " \
+                                    "--overwrite to run it again, or give another -o"
     assert (out / "metrics.json").read_text() == "{}"
+
+
+def test_resume_of_a_run_killed_before_its_first_checkpoint_starts_over(synthetic_sequence_dir, tmp_path):
+    out = tmp_path / "out"
+    options = ["--set", "mapper.enabled=false", "--set", "mesh.enabled=false", "--max-frames", "8"]
+    first = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", *options])
+    assert first.exit_code == 0, first.output
+    # What a SIGKILL before the first checkpoint leaves: the run's files, no metrics.json, no checkpoint.
+    (out / "metrics.json").unlink()
+    (out / "trajectory.txt").unlink()
+    result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--resume",
+                                       *options])
+    assert result.exit_code == 0, result.output
+    assert len(np.loadtxt(out / "trajectory.txt")) == 8
+    assert "no checkpoint (the run was stopped before its first one): starting from the first frame" in \
+        (out / "run.log").read_text()
 
 
 @pytest.mark.parametrize("kind", ["open3d", "open3d_f2f"])
