@@ -33,7 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tambridge.evaluation.mapping import evaluation_frames  # noqa: E402
+from tambridge.evaluation.mapping import evaluation_frames, score_views  # noqa: E402
 from tambridge.mapping.stage import MappingStage  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
 from tambridge.frontend.factory import make_frontend  # noqa: E402
@@ -93,7 +93,7 @@ def replay(cache: Path, overrides: list[str], preset: Path | None, ground_truth_
     frame_poses = truth if ground_truth_poses else estimate
     trajectory = Trajectory(result.trajectory.timestamps_s, frame_poses)
     run_log = RunLog(cache.with_suffix(".replay.log"))
-    stage = MappingStage(sequence, config, run_log)
+    stage = MappingStage(sequence, config.mapper, config.bridge, run_log, seed=config.seed)
     tracked = []
     started = time.perf_counter()
     for event, keyframe_poses in data["events"]:
@@ -104,7 +104,7 @@ def replay(cache: Path, overrides: list[str], preset: Path | None, ground_truth_
             keyframe_poses = {key: truth[keyframe_frames[key]] for key in keyframe_poses}
         stage.on_keyframe(event, sequence[event.frame_index], keyframe_poses)
         if tracked_frames:
-            scores = stage.evaluate(stage.rendering_poses(trajectory), tracked_frames)
+            scores = score_views(stage, stage.rendering_poses(trajectory), tracked_frames)
             tracked.append((event.frame_index, [round(value, 2) for value in scores.psnr_db]))
     final_poses = {key: truth[keyframe_frames[key]] if ground_truth_poses else pose for key, pose in result.keyframe_poses.items()}
     stage.finish(final_poses)
@@ -113,7 +113,7 @@ def replay(cache: Path, overrides: list[str], preset: Path | None, ground_truth_
     poses = stage.rendering_poses(trajectory)
     view_frames = sorted(view.frame_index for view in stage.views)
     novel_frames = evaluation_frames(len(sequence), config.evaluation.novel_view_every, set(view_frames))
-    novel, views = stage.evaluate(poses, novel_frames), stage.evaluate(poses, view_frames)
+    novel, views = score_views(stage, poses, novel_frames), score_views(stage, poses, view_frames)
     aligned = poses if ground_truth_poses else truth_from_estimate @ poses
     view_errors_m = [np.linalg.norm(aligned[index][:3, 3] - truth[index][:3, 3]) for index in view_frames]
     row = {"overrides": overrides, "ground_truth_poses": ground_truth_poses,

@@ -12,7 +12,6 @@ import logging
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -30,10 +29,9 @@ from tambridge.config import Config, check_config, config_for_camera, to_dict, t
 from tambridge.device import device_summary, resolve_device
 from tambridge.evaluation.mapping import mapping_metrics
 from tambridge.evaluation.metrics import DeviceMetrics, RunMetrics, TrajectoryMetrics, write_metrics
-from tambridge.evaluation.report import REPORT_FILES, RenderPair, write_report
+from tambridge.evaluation.report import REPORT_FILES, write_run_report
 from tambridge.evaluation.trajectory import TrajectoryErrors, TrajectoryEvaluationError, evaluate_trajectory
-from tambridge.export.config import MeshSource
-from tambridge.export.mesh import fuse_tsdf_mesh, gaussian_views, sensor_views, write_mesh
+from tambridge.export.mesh import write_run_mesh
 from tambridge.export.splats import save_ply
 from tambridge.files import atomic_write_text
 from tambridge.frontend.contract import Frontend, FrontendResult
@@ -44,8 +42,8 @@ from tambridge.mapping.stage import MappingStage
 from tambridge.run_folder import RunFolder, Start, check_output_folder
 from tambridge.runlog import RunLog, peak_memory_mb
 from tambridge.stop import RunStopped, StopRequests, signal_name
-from tambridge.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
-from tambridge.viewer import RerunViewer
+from tambridge.trajectory import Trajectory, write_tum_trajectory
+from tambridge.viewer import RerunViewer, log_final_state
 
 logger = logging.getLogger("tambridge.pipelines.reconstruct")
 
@@ -130,7 +128,7 @@ def reconstruct(
                     sequence.camera)
         atomic_write_text(output_dir / "config.yaml", to_yaml(config))
         frontend = make_frontend(config.frontend, sequence.camera)
-        mapping = MappingStage(sequence, config, run_log, device) if config.mapper.enabled else None
+        mapping = MappingStage(sequence, config.mapper, config.bridge, run_log, device, config.seed) if config.mapper.enabled else None
         logger.info("Gaussian map, bridge and rendering evaluation on %s", device if mapping is not None else "(mapper off)")
         counters = RunCounters()
         if start is Start.RESUME and checkpoint is None:
@@ -161,7 +159,7 @@ def reconstruct(
                     save_ply(output_dir / "splats.ply", mapping.map.world_gaussians())
             if config.mesh.enabled:
                 with run_log.stage("mesh"):
-                    write_run_mesh(output_dir / "mesh.ply", sequence, tracking.trajectory, config, mapping)
+                    write_run_mesh(output_dir / "mesh.ply", sequence, tracking.trajectory, config.mesh, mapping)
             if live_view is not None:
                 with run_log.stage("viewer"):
                     log_final_state(live_view, sequence, tracking, mapping)
@@ -282,7 +280,7 @@ def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResul
     # End to end = what a user waits for to get trajectory and map.
     seconds_total = counters.elapsed_s()
     fps_per_stage = {name: len(sequence) / max(seconds, 1e-9) for name, seconds in run_log.stage_seconds.items()}
-    map_metrics = None if mapping is None else mapping_metrics(mapping, tracking, sequence, config, run_log)
+    map_metrics = None if mapping is None else mapping_metrics(mapping, tracking, sequence, config.evaluation, run_log)
     metrics = RunMetrics(
         sequence=str(Path(sequence.folder).resolve()),
         frames=len(sequence),
@@ -320,65 +318,3 @@ def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResul
     metrics.trajectory = TrajectoryMetrics(**errors.summary())
     logger.info("ATE RMSE %.2f cm over %d poses (SE(3)-aligned)", errors.ate_rmse_m * 100, errors.pose_count)
     return metrics, errors
-
-
-REPORT_RENDERS = 4
-"""Frames rendered from the map for the report's grid (at the mapping resolution: cheap)."""
-
-
-def write_run_mesh(path: Path, sequence: RgbdSequence, trajectory: Trajectory, config: Config,
-                   mapping: MappingStage | None) -> None:
-    """TSDF mesh of every ``mesh.frame_stride``-th frame at its final pose; ``mesh.source=rendered`` fuses the
-    map's rendered depth (at the mapping resolution, from the rendering poses) instead of the sensor's."""
-    source = config.mesh.source
-    stride = config.mesh.frame_stride
-    if source == MeshSource.rendered and mapping is not None and len(mapping.map):
-        poses = mapping.rendering_poses(trajectory)[::stride]
-        views, camera = gaussian_views(mapping.map.world_gaussians(), mapping.camera, poses), mapping.camera
-    else:
-        if source == MeshSource.rendered:
-            logger.warning("mesh.source=rendered but no Gaussian map was built (mapper.enabled=false?): fusing sensor depth")
-        views, camera = sensor_views(sequence, trajectory.world_from_camera, stride), sequence.camera
-    write_mesh(path, fuse_tsdf_mesh(views, camera, config.mesh))
-
-
-def log_final_state(live_view: RerunViewer, sequence: RgbdSequence, tracking: FrontendResult,
-                    mapping: MappingStage | None) -> None:
-    """After the frontend: corrected keyframes, the sparse map, the Gaussian centres and a render of the last view."""
-    last = len(sequence) - 1
-    stamp = float(sequence.timestamps_s[last])
-    live_view.log_keyframes(last, stamp, tracking.keyframe_trajectory.world_from_camera)
-    if len(tracking.map_points_world_m):
-        live_view.log_sparse_map(last, stamp, tracking.map_points_world_m, tracking.map_point_colours)
-    if mapping is not None and len(mapping.map):
-        gaussians = mapping.map.world_gaussians()
-        live_view.log_gaussians(last, stamp, gaussians.means_m.detach().cpu().numpy(), gaussians.rgb.detach().cpu().numpy(),
-                                gaussians.log_radii_m.detach().exp().cpu().numpy())
-        pose = mapping.rendering_poses(tracking.trajectory)[last]
-        live_view.log_render(last, stamp, _uint8(mapping.map.render(mapping.camera, pose).rgb.detach().cpu().numpy()))
-
-
-def write_run_report(output_dir: Path, metrics: RunMetrics, sequence: RgbdSequence, errors: TrajectoryErrors | None,
-                     mapping: MappingStage | None, trajectory: Trajectory, gaussian_counts: list[tuple[int, int]]) -> None:
-    """``output_dir/report/index.html``; adds COLMAP when ``output_dir/colmap/trajectory.txt`` exists."""
-    trajectory_errors = {}
-    if errors is not None:
-        trajectory_errors["tambridge (SE(3))"] = errors
-        colmap_path = output_dir / "colmap" / "trajectory.txt"
-        if colmap_path.is_file():
-            trajectory_errors["COLMAP (Sim(3))"] = evaluate_trajectory(read_tum_trajectory(colmap_path),
-                                                                       sequence.ground_truth, align="sim3")
-    pairs = []
-    if mapping is not None and len(mapping.map):
-        poses = mapping.rendering_poses(trajectory)
-        for index in np.unique(np.linspace(0, len(sequence) - 1, REPORT_RENDERS).astype(int)):
-            rendered = mapping.map.render(mapping.camera, poses[index]).rgb.detach().cpu().numpy()
-            pairs.append(RenderPair(f"frame {index}", _uint8(mapping.images(int(index)).rgb.cpu().numpy()), _uint8(rendered)))
-    counts = np.array(gaussian_counts).reshape(-1, 2)
-    write_report(output_dir / "report", metrics, trajectory_errors, pairs,
-                 (counts[:, 0], counts[:, 1]) if len(counts) else None, title=f"tambridge: {metrics.sequence}")
-
-
-def _uint8(rgb: np.ndarray) -> np.ndarray:
-    """(H, W, 3) float colours in [0, 1] (clipped) as uint8."""
-    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

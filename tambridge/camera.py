@@ -9,6 +9,8 @@ and ``pinhole_inverse_depth_numba`` are its compiled forms for numba kernels.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import dataclasses
 from pathlib import Path
 
@@ -18,6 +20,9 @@ import yaml
 
 from tambridge.errors import CameraConfigError
 from tambridge.files import read_text_file
+
+if TYPE_CHECKING:
+    import torch
 
 
 def pinhole(x, y, z, fx, fy, cx, cy):

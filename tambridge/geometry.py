@@ -9,9 +9,14 @@ Tangent vectors are ordered ``(rho, phi)``: translation part first, rotation par
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+if TYPE_CHECKING:
+    import torch
 
 
 def hat(phi: np.ndarray) -> np.ndarray:

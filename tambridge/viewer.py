@@ -20,6 +20,10 @@ import numpy as np
 
 from tambridge.camera import Camera
 from tambridge.errors import TambridgeError
+from tambridge.frontend.contract import FrontendResult
+from tambridge.images import rgb_uint8
+from tambridge.io.tum import RgbdSequence
+from tambridge.mapping.stage import MappingStage
 
 logger = logging.getLogger("tambridge.viewer")
 
@@ -129,3 +133,19 @@ class RerunViewer:
         self.recording.disconnect()
         if self.recording_path is not None:
             logger.info("rerun recording: %s (open with: rerun %s)", self.recording_path, self.recording_path)
+
+
+def log_final_state(live_view: RerunViewer, sequence: RgbdSequence, tracking: FrontendResult,
+                    mapping: MappingStage | None) -> None:
+    """After the frontend: corrected keyframes, the sparse map, the Gaussian centres and a render of the last view."""
+    last = len(sequence) - 1
+    stamp = float(sequence.timestamps_s[last])
+    live_view.log_keyframes(last, stamp, tracking.keyframe_trajectory.world_from_camera)
+    if len(tracking.map_points_world_m):
+        live_view.log_sparse_map(last, stamp, tracking.map_points_world_m, tracking.map_point_colours)
+    if mapping is not None and len(mapping.map):
+        gaussians = mapping.map.world_gaussians()
+        live_view.log_gaussians(last, stamp, gaussians.means_m.detach().cpu().numpy(), gaussians.rgb.detach().cpu().numpy(),
+                                gaussians.log_radii_m.detach().exp().cpu().numpy())
+        pose = mapping.rendering_poses(tracking.trajectory)[last]
+        live_view.log_render(last, stamp, rgb_uint8(mapping.map.render(mapping.camera, pose).rgb.detach().cpu().numpy()))

@@ -100,13 +100,13 @@ def test_mapping_state_is_saved_on_the_cpu_and_loads_onto_the_stage_device(synth
     run_log = RunLog(tmp_path / "run.log")
     try:
         with compute_threads(TORCH_THREADS, 1):
-            stage = MappingStage(sequence, config, run_log)
+            stage = MappingStage(sequence, config.mapper, config.bridge, run_log, seed=config.seed)
             poses = {}
             for keyframe_id, index in enumerate((0, 3)):
                 poses[keyframe_id] = sequence.ground_truth.world_from_camera[index]
                 stage.on_keyframe(_keyframe(keyframe_id, index, poses[keyframe_id]), sequence[index], dict(poses))
         state = stage.state_dict()
-        moved = MappingStage(sequence, config, run_log, torch.device("meta"))
+        moved = MappingStage(sequence, config.mapper, config.bridge, run_log, torch.device("meta"), config.seed)
         moved.load_state_dict(state)
     finally:
         run_log.close()

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from tambridge.bridge.view import MappingView
-from tambridge.evaluation.mapping import evaluation_frames
+from tambridge.bridge.config import BridgeConfig
+from tambridge.evaluation.mapping import evaluation_frames, score_views
 from tambridge.evaluation.metrics import read_metrics
 from tambridge.mapping.stage import MappingStage
 from pipelines.reconstruct import reconstruct
@@ -188,7 +189,7 @@ def test_mapping_a_synthetic_sequence_at_ground_truth_poses(synthetic_sequence_d
     frontend = GroundTruthFrontend(sequence.ground_truth, every=3)
     run_log = RunLog(tmp_path / "run.log")
     try:
-        stage = MappingStage(sequence, config, run_log)
+        stage = MappingStage(sequence, config.mapper, config.bridge, run_log, seed=config.seed)
         for index in range(0, len(sequence), 3):
             stage.on_keyframe(frontend.event(index), sequence[index], dict(frontend.poses))
             assert len(stage._cache) <= config.mapper.window_size + 1  # frames are not kept beyond the window
@@ -197,8 +198,8 @@ def test_mapping_a_synthetic_sequence_at_ground_truth_poses(synthetic_sequence_d
         np.testing.assert_allclose(poses, sequence.ground_truth.world_from_camera, atol=1e-9)
         held_out = evaluation_frames(len(sequence), 5, {view.frame_index for view in stage.views})
         assert held_out == [5, 10, 20, 25]
-        scores = stage.evaluate(poses, held_out).summary()
-        views = stage.evaluate(poses, [0, 12, 27]).summary()
+        scores = score_views(stage, poses, held_out).summary()
+        views = score_views(stage, poses, [0, 12, 27]).summary()
         # A loop correction moving keyframe 4 (frame 12) moves its Gaussians rigidly, and only those.
         correction = exp_se3(np.array([0.03, 0.01, -0.02, 0.02, 0.0, -0.01]))
         means_before = stage.map.gaussians().means_m.double().numpy()
@@ -232,7 +233,7 @@ def test_coverage_rule_maps_a_keyframe_that_eq_3_rejects_and_asks_for_one_in_a_g
         config.mapper.coverage_check_every = 4
         run_log = RunLog(tmp_path / "run.log")
         try:
-            stage = MappingStage(sequence, config, run_log)
+            stage = MappingStage(sequence, config.mapper, config.bridge, run_log, seed=config.seed)
             keyframe_poses = {}
             for keyframe_id, index in enumerate((0, 8)):
                 keyframe_poses[keyframe_id] = poses[index]
@@ -242,7 +243,7 @@ def test_coverage_rule_maps_a_keyframe_that_eq_3_rejects_and_asks_for_one_in_a_g
                 if index == 0:
                     requests[unexplained] = [stage.needs_view(TrackResult(i, 0.0, poses[i], True, False, 100), sequence[i])
                                              for i in range(1, 5)]
-            psnr_db[unexplained] = np.mean(stage.evaluate(poses, [4, 6]).psnr_db)
+            psnr_db[unexplained] = np.mean(score_views(stage, poses, [4, 6]).psnr_db)
         finally:
             run_log.close()
         selections = [view.selection for view in stage.views]
@@ -257,7 +258,7 @@ def test_rendering_poses_carry_the_bridge_correction_to_the_frames_after_a_view(
     sequence = open_sequence(synthetic_sequence_dir, max_frames=6)
     run_log = RunLog(tmp_path / "run.log")
     try:
-        stage = MappingStage(sequence, Config(), run_log)
+        stage = MappingStage(sequence, MapperConfig(), BridgeConfig(), run_log)
     finally:
         run_log.close()
     trajectory = sequence.ground_truth

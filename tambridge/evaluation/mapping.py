@@ -5,8 +5,10 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import torch
 
-from tambridge.config import Config
+from tambridge.evaluation.config import EvaluationConfig
+from tambridge.evaluation.rendering import RenderingScores, score_renders
 from tambridge.evaluation.metrics import BridgeMetrics, MapMetrics, RenderingMetrics, ViewPoseErrors, ViewScores
 from tambridge.errors import TrajectoryEvaluationError
 from tambridge.evaluation.trajectory import ate_rmse_m
@@ -24,7 +26,28 @@ def evaluation_frames(frame_count: int, every: int, mapping_frames: set[int]) ->
     return [index for index in range(0, frame_count, every) if index not in mapping_frames]
 
 
-def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: RgbdSequence, config: Config,
+def score_views(mapping: MappingStage, rendering_poses: np.ndarray, frame_indices: list[int]) -> RenderingScores:
+    """PSNR/SSIM/LPIPS of renders at full resolution from ``rendering_poses`` (N, 4, 4) against the input frames,
+    inside the sequence's valid region (undistortion's border, where the frames have no data, is not scored)."""
+    camera = mapping.sequence.camera
+    top, bottom, left, right = mapping.sequence.valid_region
+
+    def pairs():
+        for index in frame_indices:
+            rendered = mapping.map.render(camera, rendering_poses[index]).rgb
+            # A frame takes the exposure of the view it is anchored to (estimated from mapping views only).
+            exposure = mapping.anchor_view(index).exposure if mapping.views else None
+            if exposure is not None:
+                with torch.no_grad():
+                    rendered = exposure.apply(rendered)
+            rendered = rendered.clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
+            yield index, rendered, mapping.sequence[index].rgb[top:bottom, left:right].astype(np.float32) / 255.0
+
+    with mapping.threads():
+        return score_renders(pairs())
+
+
+def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: RgbdSequence, evaluation: EvaluationConfig,
                     run_log: RunLog) -> MapMetrics:
     """What the mapping stage adds to metrics.json: rendering scores (novel and mapping views), map and bridge figures.
 
@@ -33,10 +56,10 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
     """
     poses = mapping.rendering_poses(tracking.trajectory)
     view_frames = sorted(view.frame_index for view in mapping.views)
-    novel = evaluation_frames(len(sequence), config.evaluation.novel_view_every, set(view_frames))
+    novel = evaluation_frames(len(sequence), evaluation.novel_view_every, set(view_frames))
     with run_log.stage("evaluation"):
-        novel_scores = ViewScores(**mapping.evaluate(poses, novel).summary())
-        view_scores = ViewScores(**mapping.evaluate(poses, view_frames).summary())
+        novel_scores = ViewScores(**score_views(mapping, poses, novel).summary())
+        view_scores = ViewScores(**score_views(mapping, poses, view_frames).summary())
     refinements = [view.refinement for view in mapping.views if view.refinement is not None and not view.refinement.skipped]
     logger.info("rendering: novel views %.2f dB PSNR, %.3f SSIM (%d frames); mapping views %.2f dB, %.3f SSIM (%d); %d Gaussians",
                 novel_scores.psnr_db or float("nan"), novel_scores.ssim or float("nan"), len(novel),
@@ -59,7 +82,7 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
         mapping_views=len(mapping.views),
         mapping_resolution=[mapping.camera.width, mapping.camera.height],
         bridge=BridgeMetrics(
-            enabled=config.bridge.enabled,
+            enabled=mapping.bridge_config.enabled,
             view_selection=dict(mapping.selections),
             refined_views=len(refinements),
             mean_loss_initial=float(np.mean([r.loss_initial for r in refinements])) if refinements else None,

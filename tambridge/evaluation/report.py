@@ -28,7 +28,10 @@ from tambridge.evaluation.metrics import RunMetrics, metrics_json, read_metrics 
 from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_path, atomic_write_text  # noqa: E402
-from tambridge.trajectory import read_tum_trajectory  # noqa: E402
+from tambridge.images import rgb_uint8  # noqa: E402
+from tambridge.io.tum import RgbdSequence  # noqa: E402
+from tambridge.mapping.stage import MappingStage  # noqa: E402
+from tambridge.trajectory import Trajectory, read_tum_trajectory  # noqa: E402
 
 logger = logging.getLogger("tambridge.evaluation.report")
 
@@ -204,3 +207,28 @@ td.value {{ font-family: monospace; }}
 </body>
 </html>
 """
+
+
+REPORT_RENDERS = 4
+"""Frames rendered from the map for the report's grid (at the mapping resolution: cheap)."""
+
+
+def write_run_report(output_dir: Path, metrics: RunMetrics, sequence: RgbdSequence, errors: TrajectoryErrors | None,
+                     mapping: MappingStage | None, trajectory: Trajectory, gaussian_counts: list[tuple[int, int]]) -> None:
+    """``output_dir/report/index.html``; adds COLMAP when ``output_dir/colmap/trajectory.txt`` exists."""
+    trajectory_errors = {}
+    if errors is not None:
+        trajectory_errors["tambridge (SE(3))"] = errors
+        colmap_path = output_dir / "colmap" / "trajectory.txt"
+        if colmap_path.is_file():
+            trajectory_errors["COLMAP (Sim(3))"] = evaluate_trajectory(read_tum_trajectory(colmap_path),
+                                                                       sequence.ground_truth, align="sim3")
+    pairs = []
+    if mapping is not None and len(mapping.map):
+        poses = mapping.rendering_poses(trajectory)
+        for index in np.unique(np.linspace(0, len(sequence) - 1, REPORT_RENDERS).astype(int)):
+            rendered = mapping.map.render(mapping.camera, poses[index]).rgb.detach().cpu().numpy()
+            pairs.append(RenderPair(f"frame {index}", rgb_uint8(mapping.images(int(index)).rgb.cpu().numpy()), rgb_uint8(rendered)))
+    counts = np.array(gaussian_counts).reshape(-1, 2)
+    write_report(output_dir / "report", metrics, trajectory_errors, pairs,
+                 (counts[:, 0], counts[:, 1]) if len(counts) else None, title=f"tambridge: {metrics.sequence}")

@@ -21,10 +21,13 @@ import open3d.core as o3c
 import trimesh
 
 from tambridge.camera import Camera
-from tambridge.export.config import MeshConfig
+from tambridge.export.config import MeshConfig, MeshSource
 from tambridge.errors import TambridgeError
 from tambridge.files import atomic_write_bytes
 from tambridge.geometry import inverse
+from tambridge.io.tum import RgbdSequence
+from tambridge.mapping.stage import MappingStage
+from tambridge.trajectory import Trajectory
 
 logger = logging.getLogger("tambridge.export.mesh")
 
@@ -164,3 +167,19 @@ def convert_mesh(source: Path, target: Path, format: str | None = None) -> trime
     mesh = read_mesh(source)
     write_mesh(target, mesh, format)
     return mesh
+
+
+def write_run_mesh(path: Path, sequence: RgbdSequence, trajectory: Trajectory, config: MeshConfig,
+                   mapping: MappingStage | None) -> None:
+    """TSDF mesh of every ``frame_stride``-th frame at its final pose; ``source=rendered`` fuses the
+    map's rendered depth (at the mapping resolution, from the rendering poses) instead of the sensor's."""
+    source = config.source
+    stride = config.frame_stride
+    if source == MeshSource.rendered and mapping is not None and len(mapping.map):
+        poses = mapping.rendering_poses(trajectory)[::stride]
+        views, camera = gaussian_views(mapping.map.world_gaussians(), mapping.camera, poses), mapping.camera
+    else:
+        if source == MeshSource.rendered:
+            logger.warning("mesh.source=rendered but no Gaussian map was built (mapper.enabled=false?): fusing sensor depth")
+        views, camera = sensor_views(sequence, trajectory.world_from_camera, stride), sequence.camera
+    write_mesh(path, fuse_tsdf_mesh(views, camera, config))

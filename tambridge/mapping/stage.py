@@ -30,9 +30,9 @@ from tambridge.bridge.refinement import refine_render_pose
 from tambridge.bridge.view import MappingView
 from tambridge.bridge.view_selection import Selection, select_view
 from tambridge.state import attribute_state, restore_attributes
-from tambridge.config import Config
-from tambridge.evaluation.rendering import RenderingScores, score_renders
+from tambridge.bridge.config import BridgeConfig
 from tambridge.frontend.contract import KeyframeEvent, TrackResult
+from tambridge.gaussians.config import MapperConfig
 from tambridge.gaussians.mapper import GaussianMap, ViewExposure, ViewImages, backproject
 from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.geometry import inverse, transform_points
@@ -79,27 +79,28 @@ def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device
 class MappingStage:
     """Fusion Bridge + online mapper over one sequence (state across keyframes).
 
-    ``device`` (:func:`tambridge.device.resolve_device` of ``config.device``) holds the map, the cached images,
+    ``device`` (:func:`tambridge.device.resolve_device` of the run's ``device``) holds the map, the cached images,
     the exposures and every tensor of the bridge; renders come back to the CPU only where numpy needs them.
     """
 
-    def __init__(self, sequence: RgbdSequence, config: Config, run_log: RunLog,
-                 device: torch.device = torch.device("cpu")) -> None:
+    def __init__(self, sequence: RgbdSequence, mapper_config: MapperConfig, bridge_config: BridgeConfig, run_log: RunLog,
+                 device: torch.device = torch.device("cpu"), seed: int = 0) -> None:
         self.sequence = sequence
-        self.config = config
+        self.mapper_config = mapper_config
+        self.bridge_config = bridge_config
         self.run_log = run_log
         self.device = device
-        self.camera = sequence.camera.scaled(config.mapper.resolution_scale)
-        self.map = GaussianMap(config.mapper, device)
+        self.camera = sequence.camera.scaled(mapper_config.resolution_scale)
+        self.map = GaussianMap(mapper_config, device)
         self.views: list[MappingView] = []
         self.keyframe_poses: dict[int, np.ndarray] = {}
         self.selections: collections.Counter = collections.Counter()
         self._cache: collections.OrderedDict[int, ViewImages] = collections.OrderedDict()
-        self._rng = np.random.default_rng(config.seed)
+        self._rng = np.random.default_rng(seed)
         self._frames_since_keyframe = 0
 
-    def _threads(self) -> contextlib.AbstractContextManager:
-        return compute_threads(TORCH_THREADS, self.config.mapper.kernel_threads)
+    def threads(self) -> contextlib.AbstractContextManager:
+        return compute_threads(TORCH_THREADS, self.mapper_config.kernel_threads)
 
     # ---- poses ---------------------------------------------------------------------------------------------
 
@@ -110,11 +111,11 @@ class MappingStage:
     def new_exposure(self) -> ViewExposure | None:
         """The exposure of a new view: frozen at the identity for the first (it fixes the map's colour scale),
         else starting from the latest view's; None when ``mapper.exposure_compensation`` is off."""
-        if not self.config.mapper.exposure_compensation:
+        if not self.mapper_config.exposure_compensation:
             return None
         if not self.views:
             return ViewExposure(frozen=True, device=self.device)
-        return ViewExposure(self.views[-1].exposure.parameters, self.config.mapper.lr_exposure)
+        return ViewExposure(self.views[-1].exposure.parameters, self.mapper_config.lr_exposure)
 
     @staticmethod
     def exposures(views: list[MappingView]) -> list[ViewExposure | None] | None:
@@ -136,10 +137,10 @@ class MappingStage:
         if frame_index in self._cache:
             self._cache.move_to_end(frame_index)
             return self._cache[frame_index]
-        images = resize_frame(frame if frame is not None else self.sequence[frame_index], self.config.mapper.resolution_scale,
+        images = resize_frame(frame if frame is not None else self.sequence[frame_index], self.mapper_config.resolution_scale,
                               self.device, self.sequence.valid_region)
         self._cache[frame_index] = images
-        while len(self._cache) > self.config.mapper.window_size + 1:
+        while len(self._cache) > self.mapper_config.window_size + 1:
             self._cache.popitem(last=False)
         return images
 
@@ -147,11 +148,11 @@ class MappingStage:
 
     def on_keyframe(self, event: KeyframeEvent, frame: Frame, keyframe_poses: dict[int, np.ndarray]) -> None:
         """One keyframe from the frontend: select, refine, map. ``keyframe_poses`` are the frontend's current ones."""
-        with self._threads():
+        with self.threads():
             self._on_keyframe(event, frame, keyframe_poses)
 
     def _on_keyframe(self, event: KeyframeEvent, frame: Frame, keyframe_poses: dict[int, np.ndarray]) -> None:
-        bridge = self.config.bridge
+        bridge = self.bridge_config
         self._frames_since_keyframe = 0
         selection = select_view(event, not self.keyframe_poses, bridge.enabled, bridge.alpha, bridge.beta)
         self.keyframe_poses[event.keyframe_id] = np.asarray(event.world_from_camera, np.float64)
@@ -167,7 +168,7 @@ class MappingStage:
         keyframe_from_view = np.eye(4)
         if bridge.enabled and len(self.map):
             with self.run_log.stage("bridge"):
-                keypoints = (np.asarray(event.keypoints_px, np.float64).reshape(-1, 2) + 0.5) * self.config.mapper.resolution_scale - 0.5
+                keypoints = (np.asarray(event.keypoints_px, np.float64).reshape(-1, 2) + 0.5) * self.mapper_config.resolution_scale - 0.5
                 # Only the Gaussians in view at the frontend pose: the refinement moves the pose by centimetres.
                 in_view = self.map.visible_rows(self.camera, self.keyframe_poses[event.keyframe_id])
                 with torch.no_grad():
@@ -176,7 +177,7 @@ class MappingStage:
                 observed_rgb = images.rgb if exposure is None else exposure.invert(images.rgb)
                 refinement = refine_render_pose(gaussians, self.camera, self.keyframe_poses[event.keyframe_id],
                                          observed_rgb, images.depth_m, event.points_world_m, keypoints, bridge,
-                                         backend=self.config.mapper.backend)
+                                         backend=self.mapper_config.backend)
                 keyframe_from_view = inverse(self.keyframe_poses[event.keyframe_id]) @ refinement.world_from_camera
         view = MappingView(event.keyframe_id, event.frame_index, keyframe_from_view, selection, refinement, exposure)
         with self.run_log.stage("mapping"):
@@ -185,12 +186,12 @@ class MappingStage:
     def needs_view(self, result: TrackResult, frame: Frame) -> bool:
         """Whether a tracked frame that is not a keyframe should become a mapping view because the map lacks too
         much of it (:meth:`uncovered`); checked every ``mapper.coverage_check_every``-th frame after a keyframe."""
-        if result.is_keyframe or not result.tracked or not self.views or not self.config.mapper.coverage_unexplained:
+        if result.is_keyframe or not result.tracked or not self.views or not self.mapper_config.coverage_unexplained:
             return False
         self._frames_since_keyframe += 1
-        if self._frames_since_keyframe % max(1, self.config.mapper.coverage_check_every):
+        if self._frames_since_keyframe % max(1, self.mapper_config.coverage_check_every):
             return False
-        with self._threads():
+        with self.threads():
             return self.uncovered(frame, self.rendering_pose(frame.index, result.world_from_camera))
 
     def uncovered(self, frame: Frame, world_from_camera: np.ndarray) -> bool:
@@ -198,12 +199,12 @@ class MappingStage:
         frame's valid depth pixels unexplained than of its anchor view's (always False with the rule off or no view).
         The anchor view's share is what the map cannot explain even where it was made (depth noise and holes, a
         map of one view)."""
-        threshold = self.config.mapper.coverage_unexplained
+        threshold = self.mapper_config.coverage_unexplained
         if not threshold or not self.views:
             return False
         with self.run_log.stage("coverage"):
             # Depth only: the check never looks at colour, and it runs every coverage_check_every-th frame.
-            depth_m = resize_depth(frame.depth_m, self.config.mapper.resolution_scale).to(self.device)
+            depth_m = resize_depth(frame.depth_m, self.mapper_config.resolution_scale).to(self.device)
             fraction = self.map.unexplained_fraction(self.camera, world_from_camera, depth_m)
         floor = self.anchor_view(frame.index).unexplained
         logger.debug("frame %d: %.1f %% of its depth unexplained by the map (%.1f %% at its view)", frame.index,
@@ -220,10 +221,10 @@ class MappingStage:
         self.views.append(view)
         views = [(world_from_camera, images)] + [(self.view_pose(v), self.images(v.frame_index)) for v in window]
         # Every other step on the new view, the others cycle through the earlier overlapping ones.
-        schedule = [0 if k % 2 == 0 or not window else 1 + (k // 2) % len(window) for k in range(self.config.mapper.iterations)]
+        schedule = [0 if k % 2 == 0 or not window else 1 + (k // 2) % len(window) for k in range(self.mapper_config.iterations)]
         losses = self.map.optimise(self.camera, views, schedule, self.exposures([view] + window))
         removed = self.map.prune(self.camera, world_from_camera)
-        if self.config.mapper.coverage_unexplained:
+        if self.mapper_config.coverage_unexplained:
             view.unexplained = self.map.unexplained_fraction(self.camera, world_from_camera, images.depth_m)
         own = [loss for loss, index in zip(losses, schedule) if index == 0] or [float("nan")]
         logger.info("view %d (frame %d, %s): +%d -%d Gaussians -> %d, window %s, its loss %.4f -> %.4f", len(self.views) - 1,
@@ -232,7 +233,7 @@ class MappingStage:
 
     def overlapping_views(self, world_from_camera: np.ndarray, images: ViewImages) -> list[MappingView]:
         """The ``window_size - 1`` earlier views that see the most of this view's points (at least one point)."""
-        if not self.views or self.config.mapper.window_size <= 1:
+        if not self.views or self.mapper_config.window_size <= 1:
             return []
         points_camera = backproject(images.depth_m, self.camera, images.depth_m > 0).cpu().numpy().astype(np.float64)
         if len(points_camera) == 0:
@@ -245,7 +246,7 @@ class MappingStage:
             pixels = self.camera.project(points_view, np.maximum(points_view[:, 2], 1e-6))
             inside = (points_view[:, 2] > 0) & self.camera.in_image(pixels)
             overlaps.append(float(inside.mean()))
-        order = np.argsort(overlaps)[::-1][: self.config.mapper.window_size - 1]
+        order = np.argsort(overlaps)[::-1][: self.mapper_config.window_size - 1]
         return [self.views[i] for i in order if overlaps[i] > 0]
 
     # ---- after the frontend ----------------------------------------------------------------------------------
@@ -253,20 +254,20 @@ class MappingStage:
     def finish(self, keyframe_poses: dict[int, np.ndarray]) -> None:
         """Move every view to the final keyframe poses, run ``final_iterations_per_view`` more steps on each view
         (in random order) and prune."""
-        with self.run_log.stage("final_refinement"), self._threads():
+        with self.run_log.stage("final_refinement"), self.threads():
             self.update_keyframe_poses(keyframe_poses)
             # Views in random order, a window's worth at a time (bounded memory), each view in turn within a chunk.
             order = [self.views[i] for i in self._rng.permutation(len(self.views))]
-            chunk_size = max(1, self.config.mapper.window_size)
+            chunk_size = max(1, self.mapper_config.window_size)
             for start in range(0, len(order), chunk_size):
                 chunk = order[start : start + chunk_size]
                 views = [(self.view_pose(v), self.images(v.frame_index)) for v in chunk]
-                self.map.optimise(self.camera, views, list(range(len(chunk))) * self.config.mapper.final_iterations_per_view,
+                self.map.optimise(self.camera, views, list(range(len(chunk))) * self.mapper_config.final_iterations_per_view,
                                   self.exposures(chunk))
             if self.views:
                 removed = self.map.prune(self.camera, self.view_pose(self.views[-1]))
                 logger.info("final refinement: %d steps per view over %d views, %d Gaussians pruned -> %d",
-                            self.config.mapper.final_iterations_per_view, len(self.views), removed, len(self.map))
+                            self.mapper_config.final_iterations_per_view, len(self.views), removed, len(self.map))
 
     def rendering_poses(self, trajectory: Trajectory) -> np.ndarray:
         """(N, 4, 4) rendering pose of every frame of the frontend's ``trajectory`` (see the module doc).
@@ -288,36 +289,16 @@ class MappingStage:
         earlier = [view for view in self.views if view.frame_index <= frame_index]
         return max(earlier, key=lambda view: view.frame_index) if earlier else min(self.views, key=lambda view: view.frame_index)
 
-    def evaluate(self, rendering_poses: np.ndarray, frame_indices: list[int]) -> RenderingScores:
-        """PSNR/SSIM/LPIPS of renders at full resolution from ``rendering_poses`` (N, 4, 4) against the input frames,
-        inside the sequence's valid region (undistortion's border, where the frames have no data, is not scored)."""
-        camera = self.sequence.camera
-        top, bottom, left, right = self.sequence.valid_region
-
-        def pairs():
-            for index in frame_indices:
-                rendered = self.map.render(camera, rendering_poses[index]).rgb
-                # A frame takes the exposure of the view it is anchored to (estimated from mapping views only).
-                exposure = self.anchor_view(index).exposure if self.views else None
-                if exposure is not None:
-                    with torch.no_grad():
-                        rendered = exposure.apply(rendered)
-                rendered = rendered.clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
-                yield index, rendered, self.sequence[index].rgb[top:bottom, left:right].astype(np.float32) / 255.0
-
-        with self._threads():
-            return score_renders(pairs())
-
     def state_dict(self) -> dict:
         """What a resumed run needs: the Gaussian map (:meth:`GaussianMap.state_dict`), the views, keyframe poses,
-        selection counts, the image cache and the random generator; not the sequence, config or run log. Its
+        selection counts, the image cache and the random generator; not the sequence, configs or run log. Its
         tensors are on the CPU (a checkpoint written on a GPU loads anywhere)."""
-        state = attribute_state(self, ("sequence", "config", "run_log", "camera", "map", "device"))
+        state = attribute_state(self, ("sequence", "mapper_config", "bridge_config", "run_log", "camera", "map", "device"))
         state["map"] = self.map.state_dict()
         return _stage_tensors_to(state, torch.device("cpu"))
 
     def load_state_dict(self, state: dict) -> None:
-        """Continue from :meth:`state_dict` (on a stage built with the same sequence and config); tensors go to
+        """Continue from :meth:`state_dict` (on a stage built with the same sequence and configs); tensors go to
         this stage's device."""
         state = dict(state)
         self.map.load_state_dict(state.pop("map"))

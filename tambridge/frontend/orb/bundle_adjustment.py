@@ -316,7 +316,7 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
     order = order[np.argsort(problem.observation_point[order], kind="stable")]
     point_start = np.searchsorted(problem.observation_point[order], np.arange(len(points_world) + 1))
 
-    cost, chi2 = _evaluate(problem, camera_from_world, points_world, weights, thresholds, options.robust)
+    cost, _ = _evaluate(problem, camera_from_world, points_world, weights, thresholds, options.robust)
     initial_cost = cost
     damping = options.initial_damping
     iteration = 0
@@ -343,11 +343,11 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
             for camera in np.flatnonzero(variable_index >= 0):
                 candidate_cameras[camera] = exp_se3(delta_cameras[variable_index[camera]]) @ camera_from_world[camera]
             candidate_points = points_world + delta_points
-            candidate_cost, candidate_chi2 = _evaluate(problem, candidate_cameras, candidate_points, weights, thresholds, options.robust)
+            candidate_cost, _ = _evaluate(problem, candidate_cameras, candidate_points, weights, thresholds, options.robust)
             if candidate_cost < cost:
                 relative_decrease = (cost - candidate_cost) / max(cost, 1e-300)
                 camera_from_world, points_world = candidate_cameras, candidate_points
-                cost, chi2 = candidate_cost, candidate_chi2
+                cost = candidate_cost
                 damping = max(damping / 3.0, 1e-12)
                 improved = True
                 break
