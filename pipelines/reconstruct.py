@@ -31,6 +31,7 @@ from tambridge.evaluation.report import RenderPair, write_report
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory
 from tambridge.export.config import MeshSource
 from tambridge.export.mesh import fuse_tsdf_mesh, gaussian_views, sensor_views, write_mesh
+from tambridge.export.sparse_map import write_sparse_map
 from tambridge.export.splats import save_ply
 from tambridge.files import atomic_write_text
 from tambridge.frontend.contract import Frontend, FrontendResult
@@ -44,7 +45,7 @@ from tambridge.viewer import RerunViewer
 
 logger = logging.getLogger("tambridge.pipelines.reconstruct")
 
-RESULTS = ("metrics.json", "trajectory.txt", "keyframes.txt", "splats.ply", "mesh.ply", "report/index.html")
+RESULTS = ("metrics.json", "trajectory.txt", "keyframes.txt", "sparse_map.npz", "splats.ply", "mesh.ply", "report/index.html")
 """What a run writes beside config.yaml and run.log, relative to its output folder."""
 
 
@@ -140,6 +141,7 @@ def reconstruct(
         peak_memory_tracking_mb = peak_memory_mb()
         write_tum_trajectory(output_dir / "trajectory.txt", tracking.trajectory)
         write_tum_trajectory(output_dir / "keyframes.txt", tracking.keyframe_trajectory)
+        write_sparse_map(output_dir / "sparse_map.npz", tracking, sequence.folder)
         if mapping is not None:
             mapping.finish(tracking.keyframe_poses)
             with run_log.stage("export"):

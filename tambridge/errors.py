@@ -27,3 +27,7 @@ class CheckpointError(TambridgeError):
 
 class SplatFormatError(TambridgeError):
     """A Gaussian-splat .ply file lacks the INRIA 3DGS properties or cannot be parsed."""
+
+
+class ExportError(TambridgeError):
+    """A run folder cannot be exported (results or sequence missing, a model the target format cannot hold)."""
