@@ -265,6 +265,10 @@ def test_distorted_images_export_with_an_opencv_camera_whose_tracks_still_fit(di
     k1, k2, p1, p2, k3 = LENS
     assert np.allclose(camera.params[4:], [k1, k2, p1, p2, k3, 0, 0, 0])
     assert np.median(_reprojection_errors_px(model)) < 2.0
+    export_run(distorted_run_dir, tmp_path / "nerfstudio", "nerfstudio", frames="every:10", images="copy")
+    contents = json.loads((tmp_path / "nerfstudio" / "transforms.json").read_text())
+    assert contents["camera_model"] == "OPENCV"
+    assert [contents[key] for key in ("k1", "k2", "p1", "p2", "k3", "k4")] == [k1, k2, p1, p2, k3, 0.0]
 
 
 def test_distortion_agrees_with_opencv_and_pycolmap_for_a_scene_point(distorted_run_dir, tmp_path):
