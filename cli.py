@@ -255,6 +255,28 @@ def export_mesh(run_dir, mesh_format, output_path) -> None:
     click.echo(f"wrote {output_path} ({len(mesh.vertices)} vertices, {len(mesh.faces)} triangles)")
 
 
+@main.command("export")
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--format", "export_format", type=click.Choice(["colmap", "nerfstudio"]), required=True,
+              help="colmap: sparse/0/ model and images/ (gsplat, INRIA 3DGS, COLMAP MVS); nerfstudio: transforms.json.")
+@click.option("-o", "--output", "output_dir", type=click.Path(path_type=Path),
+              help="New or empty folder (default: RUN_DIR/export_FORMAT).")
+@click.option("--frames", default="keyframes", show_default=True, metavar="keyframes|all|every:N",
+              help="Which frames become images.")
+@click.option("--images", type=click.Choice(["copy", "link", "undistort"]), default="copy", show_default=True,
+              help="Copy or symlink the colour files (camera with their distortion), or write them undistorted as the "
+                   "run saw them (pinhole; what trainers without distortion need, e.g. for TUM fr1).")
+@click.option("--text", is_flag=True, help="Also write COLMAP's .txt model files.")
+def export(run_dir, export_format, output_dir, frames, images, text) -> None:
+    """Export a finished reconstruct run (RUN_DIR) as a COLMAP model or nerfstudio data, for offline training."""
+    from pipelines.export import export_run
+
+    result = export_run(run_dir, output_dir, export_format, frames, images, text)
+    tracks = f" ({result.observations} observations in their tracks)" if result.observations else ""
+    click.echo(f"wrote {result.images} images and {result.points} points{tracks} to {result.output_dir}")
+    click.echo(f"points: {result.points_source}")
+
+
 @main.command()
 @click.argument("sequence_dir", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "output_dir", type=click.Path(path_type=Path), required=True, help="Output folder.")

@@ -32,6 +32,7 @@ from tambridge.evaluation.metrics import DeviceMetrics, RunMetrics, TrajectoryMe
 from tambridge.evaluation.report import REPORT_FILES, write_run_report
 from tambridge.evaluation.trajectory import TrajectoryErrors, TrajectoryEvaluationError, evaluate_trajectory
 from tambridge.export.mesh import write_run_mesh
+from tambridge.export.sparse_map import write_sparse_map
 from tambridge.export.splats import save_ply
 from tambridge.files import atomic_write_text
 from tambridge.frontend.contract import Frontend, FrontendResult
@@ -47,7 +48,7 @@ from tambridge.viewer import RerunViewer, log_final_state
 
 logger = logging.getLogger("tambridge.pipelines.reconstruct")
 
-RUN_FILES = ("config.yaml", "run.log", "trajectory.txt", "keyframes.txt", "splats.ply", "mesh.ply",
+RUN_FILES = ("config.yaml", "run.log", "trajectory.txt", "keyframes.txt", "sparse_map.npz", "splats.ply", "mesh.ply",
              *(f"report/{name}" for name in REPORT_FILES), CHECKPOINT_FOLDER + "/" + CHECKPOINT_NAME, "metrics.json")
 """Every file a run may write, relative to its output folder (its manifest lists them)."""
 
@@ -153,6 +154,7 @@ def reconstruct(
             peak_memory_tracking_mb = peak_memory_mb()
             write_tum_trajectory(output_dir / "trajectory.txt", tracking.trajectory)
             write_tum_trajectory(output_dir / "keyframes.txt", tracking.keyframe_trajectory)
+            write_sparse_map(output_dir / "sparse_map.npz", tracking, sequence.folder)
             if mapping is not None:
                 mapping.finish(tracking.keyframe_poses)
                 with run_log.stage("export"):

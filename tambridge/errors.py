@@ -32,3 +32,7 @@ class SplatFormatError(TambridgeError):
 class TrajectoryEvaluationError(TambridgeError, ValueError):
     """A trajectory cannot be compared with its ground truth: too few poses share its clock, or they cannot be
     aligned (too few, or all on a line)."""
+
+
+class ExportError(TambridgeError):
+    """A run folder cannot be exported (results or sequence missing, a model the target format cannot hold)."""

@@ -67,6 +67,27 @@ class TrackResult:
 
 
 @dataclasses.dataclass
+class MapPointObservations:
+    """Where the keyframes see the good map points of a :class:`FrontendResult`, one row per observation.
+
+    Observation ``o`` is of point ``point_rows[o]`` (a row of the result's ``map_points_world_m``) in keyframe
+    ``keyframe_ids[o]``, at ``keypoints_px[o]`` (pixels of the frames' camera, distortion removed). ``point_rows``
+    and ``keyframe_ids`` (O,) int64, ``keypoints_px`` (O, 2) float64; a keyframe sees a point at most once.
+    """
+
+    point_rows: np.ndarray
+    keyframe_ids: np.ndarray
+    keypoints_px: np.ndarray
+
+    @staticmethod
+    def empty() -> "MapPointObservations":
+        return MapPointObservations(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+
+    def __len__(self) -> int:
+        return len(self.point_rows)
+
+
+@dataclasses.dataclass
 class FrontendResult:
     """Final poses after loop closure and global BA.
 
@@ -77,7 +98,8 @@ class FrontendResult:
     them, ORB only): a culled keyframe's pose is its parent keyframe's final pose times the relative pose it had
     when it was culled, so Gaussians anchored to it move with the map.
     ``map_points_world_m`` (P, 3), ``map_point_colours`` (P, 3) uint8 RGB and ``map_point_ids`` (P,) are the
-    good map points (empty for Open3D). ``timings_s`` holds seconds per stage (keys of :data:`STAGES`).
+    good map points (empty for Open3D), ``map_point_observations`` their observations in the keyframes (the points'
+    tracks, for exporters; empty for Open3D). ``timings_s`` holds seconds per stage (keys of :data:`STAGES`).
     """
 
     trajectory: Trajectory
@@ -93,6 +115,7 @@ class FrontendResult:
     frames_relocalised: int
     loops_closed: int
     keyframes_culled: int = 0
+    map_point_observations: MapPointObservations = dataclasses.field(default_factory=MapPointObservations.empty)
 
 
 class Frontend(Protocol):

@@ -56,7 +56,7 @@ from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.orb.features import FrameFeatures, OrbExtractor
 from tambridge.frontend.orb.pose_estimation import solve_pnp_ransac
 from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
-from tambridge.frontend.contract import FrontendResult, KeyframeEvent, TrackResult, empty_timings
+from tambridge.frontend.contract import FrontendResult, KeyframeEvent, MapPointObservations, TrackResult, empty_timings
 from tambridge.frontend.orb.config import OrbFrontendConfig, scaled_for_image
 from tambridge.frontend.orb.vocabulary import KeyframeDatabase, Vocabulary
 from tambridge.geometry import inverse
@@ -523,6 +523,7 @@ class OrbFrontend:
             frames_relocalised=self.frames_relocalised,
             loops_closed=self.loops_closed,
             keyframes_culled=self.keyframes_culled,
+            map_point_observations=map_point_observations(self.map, good),
         )
 
     # ------------------------------------------------------------------ checkpoints
@@ -542,3 +543,19 @@ class OrbFrontend:
     def load_state_dict(self, state: dict) -> None:
         """Continue from :meth:`state_dict` (on a frontend built with the same camera and config)."""
         restore_attributes(self, state)
+
+
+def map_point_observations(slam_map: SlamMap, point_ids: np.ndarray) -> MapPointObservations:
+    """The observations of map points ``point_ids`` (P,) in the keyframes, their rows being positions in ``point_ids``."""
+    selected = np.zeros(slam_map.points.count, bool)
+    selected[point_ids] = True
+    row_of_point = np.full(slam_map.points.count, -1, np.int64)
+    row_of_point[point_ids] = np.arange(len(point_ids))
+    seen = slam_map.observers(selected)
+    if not seen:
+        return MapPointObservations.empty()
+    return MapPointObservations(
+        point_rows=np.concatenate([row_of_point[slam_map.keyframes[k].point_ids[i]] for k, i in seen.items()]),
+        keyframe_ids=np.concatenate([np.full(len(i), k, np.int64) for k, i in seen.items()]),
+        keypoints_px=np.concatenate([slam_map.keyframes[k].features.keypoints_px[i] for k, i in seen.items()]).reshape(-1, 2),
+    )

@@ -1,0 +1,96 @@
+"""The images (and depth maps) of an exported run, and the camera they are in.
+
+``copy`` and ``link`` hand on the sequence's own colour files, so their camera is the sensor's, distortion and
+all; ``undistort`` writes the frames as the run saw them (undistorted, colour resampled into the depth camera
+for an unregistered sensor), in the run's pinhole camera. The run's keypoints are pixels of the latter:
+:func:`pixels_in_images` moves them into the former. Pixels follow OpenCV's convention (:mod:`tambridge.camera`).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from tambridge.camera import Camera
+from tambridge.errors import ExportError
+from tambridge.io.tum import RgbdSequence
+from tambridge.settings import Choice
+
+DEPTH_PER_METRE = 1000.0
+"""Depth maps are written as 16-bit PNGs in millimetres (0 = no depth), the unit nerfstudio assumes by default."""
+
+
+class ImageMode(Choice):
+    """How the exported images are made from the sequence's colour files."""
+
+    copy = "copy"
+    link = "link"
+    undistort = "undistort"
+
+
+def image_camera(sequence: RgbdSequence, mode: ImageMode) -> Camera:
+    """The camera of the images ``mode`` gives: the sensor's (with its distortion) for copy and link, the run's
+    undistorted pinhole camera for undistort; copying an unregistered sensor's colour is refused."""
+    if mode == ImageMode.undistort:
+        return sequence.camera
+    if sequence.sensor.colour_camera is not None:
+        raise ExportError(f"{sequence.folder}: colour is not registered to depth, so its images are not in the run's "
+                          "camera; export with --images undistort (colour resampled into the depth camera)")
+    return sequence.sensor.camera
+
+
+def pixels_in_images(pixels_px: np.ndarray, camera: Camera) -> np.ndarray:
+    """Pixels (N, 2) of the run's undistorted camera (``camera`` without distortion) in images of ``camera``:
+    the same rays through ``camera``'s distortion (OpenCV's model), unchanged when it has none."""
+    pixels_px = np.asarray(pixels_px, np.float64).reshape(-1, 2)
+    if not camera.has_distortion or len(pixels_px) == 0:
+        return pixels_px.copy()
+    rays = camera.undistorted().backproject(pixels_px, 1.0)
+    distorted, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), camera.K,
+                                     np.asarray(camera.distortion, np.float64))
+    return distorted.reshape(-1, 2)
+
+
+def write_frames(sequence: RgbdSequence, frame_indices: list[int], names: list[str], mode: ImageMode,
+                 image_dir: Path, depth_dir: Path | None = None) -> None:
+    """Write frame ``frame_indices[i]``'s colour to ``image_dir / names[i]`` as ``mode`` says and, with ``depth_dir``,
+    its depth there under the same name as a millimetre PNG (:data:`DEPTH_PER_METRE`), in the images' camera."""
+    image_dir.mkdir(parents=True, exist_ok=True)
+    if depth_dir is not None:
+        depth_dir.mkdir(parents=True, exist_ok=True)
+    for index, name in zip(frame_indices, names):
+        if mode == ImageMode.undistort:
+            frame = sequence[index]
+            _write_png(image_dir / name, cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+            depth_m = frame.depth_m if depth_dir is not None else None
+        else:
+            source = sequence.rgb_paths[index].resolve()
+            if not source.is_file():
+                raise ExportError(f"{source}: listed in {sequence.folder / 'rgb.txt'} but not found; the sequence "
+                                  "changed since the run")
+            if mode == ImageMode.link:
+                os.symlink(source, image_dir / name)
+            else:
+                shutil.copyfile(source, image_dir / name)
+            # The sensor's own depth image, registered to its colour image (distortion and all).
+            depth_m = sequence.read_depth_m(sequence.depth_paths[index]) if depth_dir is not None else None
+        if depth_m is not None:
+            _write_png(depth_dir / Path(name).with_suffix(".png").name,
+                       np.clip(np.round(depth_m * DEPTH_PER_METRE), 0, 65535).astype(np.uint16))
+
+
+def image_name(frame_index: int, mode: ImageMode, sequence: RgbdSequence) -> str:
+    """The exported image's file name: the frame index, with the colour file's suffix where it is copied as is."""
+    suffix = ".png" if mode == ImageMode.undistort else sequence.rgb_paths[frame_index].suffix.lower()
+    return f"{frame_index:06d}{suffix}"
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    ok, encoded = cv2.imencode(".png", image)
+    if not ok:
+        raise ExportError(f"{path}: OpenCV could not encode the image")
+    path.write_bytes(encoded.tobytes())

@@ -1,0 +1,414 @@
+"""``tambridge export``: a synthetic run exported as a COLMAP model and as nerfstudio data, read back and checked
+against the run's own files; conventions checked on a hand-made scene point; bad input refused whole."""
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from cli import main
+from pipelines.export import export_run
+from pipelines.reconstruct import reconstruct
+from tambridge.camera import Camera
+from tambridge.config import load_config
+from tambridge.errors import ExportError
+from tambridge.export.colmap_model import COLMAP_PIXEL_OFFSET, ModelImage, build_model
+from tambridge.export.images import DEPTH_PER_METRE, pixels_in_images
+from tambridge.export.mesh import read_mesh
+from tambridge.export.sparse_map import read_sparse_map
+from tambridge.geometry import inverse, transform_points
+from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
+from tambridge.io.tum import open_sequence
+from tambridge.trajectory import read_tum_trajectory
+
+FRAMES = 20
+RUN_OPTIONS = ["mapper.enabled=false", "frontend.orb.mapping_thread=false"]
+# A wide-angle barrel lens (OpenCV's k1 k2 p1 p2 k3, k3 set as on TUM fr1, whose own lens bends an edge of the
+# 160x120 images by a third of a pixel only: too little to tell undistortion from interpolation).
+LENS = (-0.30, 0.09, 0.001, -0.001, -0.01)
+
+
+@pytest.fixture(scope="module")
+def sequence_dir(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("export") / "room"
+    write_synthetic_sequence(folder, SynthOptions(frame_count=FRAMES, width=160, height=120))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def run_dir(sequence_dir, tmp_path_factory):
+    """An ORB run (mapper off, mesh on) of the 20-frame sequence."""
+    folder = tmp_path_factory.mktemp("export_run") / "run"
+    reconstruct(sequence_dir, folder, load_config(None, RUN_OPTIONS), progress=False)
+    return folder
+
+
+def _colmap_model(run_dir, output, **options):
+    export_run(run_dir, output, "colmap", **options)
+    return pycolmap.Reconstruction(str(output / "sparse" / "0"))
+
+
+def _camera_from_world(image) -> np.ndarray:
+    matrix = np.eye(4)
+    matrix[:3] = image.cam_from_world().matrix()
+    return matrix
+
+
+def _reprojection_errors_px(model) -> np.ndarray:
+    errors = [np.linalg.norm(model.images[element.image_id].project_point(point.xyz)
+                             - model.images[element.image_id].points2D[element.point2D_idx].xy)
+              for point in model.points3D.values() for element in point.track.elements]
+    return np.array(errors)
+
+
+def test_run_writes_its_sparse_map_with_observations(run_dir):
+    sparse_map = read_sparse_map(run_dir / "sparse_map.npz")
+    observations = sparse_map.observations
+    assert sparse_map.sequence_folder.is_absolute() and sparse_map.sequence_folder.is_dir()
+    assert len(sparse_map.points_world_m) > 100 and len(observations) > 2 * len(sparse_map.points_world_m)
+    assert set(np.unique(observations.keyframe_ids)) <= set(sparse_map.keyframe_frame_indices)
+    assert np.array_equal(np.unique(observations.point_rows), np.arange(len(sparse_map.points_world_m)))
+    # A keyframe sees a point at most once.
+    pairs = observations.keyframe_ids * len(sparse_map.points_world_m) + observations.point_rows
+    assert len(np.unique(pairs)) == len(pairs)
+
+
+def test_colmap_model_reads_back_with_the_run_poses_intrinsics_and_tracks(run_dir, sequence_dir, tmp_path):
+    model = _colmap_model(run_dir, tmp_path / "colmap", frames="keyframes", images="copy", text=True)
+    trajectory = read_tum_trajectory(run_dir / "trajectory.txt")
+    sparse_map = read_sparse_map(run_dir / "sparse_map.npz")
+    sequence = open_sequence(sequence_dir)
+    camera = sequence.camera
+
+    (colmap_camera,) = model.cameras.values()
+    assert colmap_camera.model == pycolmap.CameraModelId.PINHOLE
+    assert (colmap_camera.width, colmap_camera.height) == (160, 120)
+    assert np.allclose(colmap_camera.params, [camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5], atol=1e-12)
+
+    keyframe_frames = sorted(set(sparse_map.keyframe_frame_indices.values()))
+    assert sorted(int(image.name[:6]) for image in model.images.values()) == keyframe_frames
+    pose_errors = [np.abs(_camera_from_world(image) - inverse(trajectory.world_from_camera[int(image.name[:6])])).max()
+                   for image in model.images.values()]
+    assert max(pose_errors) < 1e-9
+    for image in model.images.values():
+        assert (tmp_path / "colmap" / "images" / image.name).read_bytes() == \
+            sequence.rgb_paths[int(image.name[:6])].read_bytes()
+
+    # Every map point, with its colour; each track element is the run's keypoint of that point in that keyframe.
+    assert model.num_points3D() == len(sparse_map.points_world_m)
+    keyframe_of_frame = {frame: keyframe for keyframe, frame in sparse_map.keyframe_frame_indices.items()}
+    observed = {(int(k), int(r)): xy for k, r, xy in zip(sparse_map.observations.keyframe_ids,
+                                                         sparse_map.observations.point_rows,
+                                                         sparse_map.observations.keypoints_px)}
+    positions = {tuple(p) for p in np.round(sparse_map.points_world_m, 9)}
+    checked = 0
+    for point in model.points3D.values():
+        assert tuple(np.round(point.xyz, 9)) in positions
+        assert point.track.length() == 0 or point.track.length() >= 2
+        for element in point.track.elements:
+            image = model.images[element.image_id]
+            row = int(np.flatnonzero((sparse_map.points_world_m == point.xyz).all(axis=1))[0])
+            keypoint = observed[(keyframe_of_frame[int(image.name[:6])], row)]
+            assert np.allclose(image.points2D[element.point2D_idx].xy, keypoint + COLMAP_PIXEL_OFFSET, atol=1e-12)
+            checked += 1
+    assert checked == model.compute_num_observations() > 2 * model.num_points3D()
+    errors = _reprojection_errors_px(model)
+    assert np.median(errors) < 2.0, np.median(errors)
+    for name in ("cameras", "images", "points3D"):
+        assert (tmp_path / "colmap" / "sparse" / "0" / f"{name}.txt").is_file()
+
+
+def _umeyama(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``target ~ s R source + t`` (least squares); returns the aligned ``source`` (N, 3)."""
+    source_mean, target_mean = source.mean(0), target.mean(0)
+    u, s, vt = np.linalg.svd((target - target_mean).T @ (source - source_mean) / len(source))
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ d @ vt
+    scale = np.trace(np.diag(s) @ d) / ((source - source_mean) ** 2).sum(1).mean()
+    return scale * (source - source_mean) @ rotation.T + target_mean
+
+
+def _bundle_adjust(model) -> None:
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = options.refine_principal_point = options.refine_extra_params = False
+    options.print_summary = False
+    pycolmap.bundle_adjustment(model, options)
+
+
+def test_bundle_adjustment_runs_on_the_exported_model(run_dir, tmp_path):
+    model = _colmap_model(run_dir, tmp_path / "colmap", frames="keyframes", images="link")
+    ids = sorted(model.reg_image_ids())
+    before = np.array([model.images[i].projection_center() for i in ids])
+    error_before = np.mean(_reprojection_errors_px(model))
+    _bundle_adjust(model)
+    after = np.array([model.images[i].projection_center() for i in ids])
+    assert np.mean(_reprojection_errors_px(model)) < error_before
+    # Reprojection alone leaves scale free and, on 160x120 images with 3-image tracks, depth weakly held: compare
+    # up to a similarity. Measured: a few cm (the run's RGB-D BA is better held than COLMAP's monocular one).
+    moved_m = np.linalg.norm(_umeyama(after, before) - before, axis=1)
+    assert moved_m.max() < 0.15, moved_m.max()
+
+
+def test_bundle_adjustment_keeps_an_exact_model_where_it_is(sequence_dir):
+    """A model of the ground-truth poses with exact projections: any convention slip in the export would make
+    bundle adjustment move the cameras."""
+    sequence = open_sequence(sequence_dir)
+    camera = sequence.camera
+    rng = np.random.default_rng(0)
+    poses = sequence.ground_truth.world_from_camera[:6]
+    # Points 2-4 m in front of the first camera, seen by every camera that has them in view.
+    points_world = transform_points(poses[0], camera.backproject(
+        rng.uniform([0, 0], [camera.width - 1, camera.height - 1], (200, 2)), rng.uniform(2.0, 4.0, 200)))
+    images = []
+    for index, pose in enumerate(poses):
+        points_camera = transform_points(inverse(pose), points_world)
+        pixels = camera.project(points_camera)
+        seen = np.flatnonzero((points_camera[:, 2] > 0.1) & camera.in_image(pixels))
+        images.append(ModelImage(f"{index:06d}.png", pose, seen, pixels[seen]))
+    model = build_model(camera, images, points_world, np.zeros((200, 3), np.uint8))
+    assert np.max(_reprojection_errors_px(model)) < 1e-9
+    before = np.array([image.projection_center() for image in model.images.values()])
+    _bundle_adjust(model)
+    after = np.array([image.projection_center() for image in model.images.values()])
+    assert np.abs(after - before).max() < 1e-6
+
+
+def _scene_point(trajectory, in_first_camera_m=(0.1, -0.05, 2.5)) -> np.ndarray:
+    """A point given in the first camera's frame (the run's world), by default 2.5 m ahead: every camera of the loop
+    sees it."""
+    return transform_points(trajectory.world_from_camera[0], np.array([in_first_camera_m]))[0]
+
+
+def _nerfstudio_pixel(contents: dict, transform: np.ndarray, point_world: np.ndarray) -> np.ndarray:
+    """nerfstudio's projection, written from its conventions: OpenGL camera (looks down -z, y up), pixel centres
+    at +0.5, pinhole (no distortion)."""
+    x, y, z = transform_points(np.linalg.inv(transform), point_world[None])[0]
+    return np.array([contents["fl_x"] * x / -z + contents["cx"], contents["fl_y"] * -y / -z + contents["cy"]]) - 0.5
+
+
+def test_a_scene_point_lands_on_the_same_pixel_through_our_camera_colmap_and_transforms_json(run_dir, sequence_dir,
+                                                                                             tmp_path):
+    model = _colmap_model(run_dir, tmp_path / "colmap", frames="every:7", images="undistort")
+    export_run(run_dir, tmp_path / "nerfstudio", "nerfstudio", frames="every:7", images="undistort")
+    contents = json.loads((tmp_path / "nerfstudio" / "transforms.json").read_text())
+    trajectory = read_tum_trajectory(run_dir / "trajectory.txt")
+    camera = open_sequence(sequence_dir).camera
+    point_world = _scene_point(trajectory)
+    frames = {frame["file_path"]: np.array(frame["transform_matrix"]) for frame in contents["frames"]}
+    assert len(frames) == len(model.images) == 3
+    for image in model.images.values():
+        index = int(image.name[:6])
+        ours = camera.project(transform_points(inverse(trajectory.world_from_camera[index]), point_world[None]))[0]
+        assert camera.in_image(ours)
+        colmap = image.project_point(point_world) - COLMAP_PIXEL_OFFSET
+        nerfstudio = _nerfstudio_pixel(contents, frames[f"images/{image.name}"], point_world)
+        assert np.abs(colmap - ours).max() < 1e-9 and np.abs(nerfstudio - ours).max() < 1e-9, (ours, colmap, nerfstudio)
+
+
+def _distorted_sequence(sequence_dir, folder):
+    """The sequence seen through a wide-angle lens: same camera matrix, images warped by its distortion, and a
+    camera.yaml that says so (so that the run's undistorted frames are the original images again)."""
+    shutil.copytree(sequence_dir, folder)
+    values = yaml.safe_load((folder / "camera.yaml").read_text())
+    values["distortion"] = list(LENS)
+    (folder / "camera.yaml").write_text(yaml.safe_dump(values))
+    camera = open_sequence(folder).sensor.camera
+    map_x, map_y = _distorting_maps(camera)
+    for path in list((folder / "rgb").iterdir()) + list((folder / "depth").iterdir()):
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        interpolation = cv2.INTER_NEAREST if image.dtype == np.uint16 else cv2.INTER_LINEAR
+        cv2.imwrite(str(path), cv2.remap(image, map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE))
+    return folder
+
+
+def _distorting_maps(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Maps for cv2.remap that make a distorted image of a pinhole one: each distorted pixel samples the pinhole
+    pixel of its ray."""
+    rows, columns = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    pixels = np.stack([columns.ravel(), rows.ravel()], axis=1)
+    undistorted = cv2.undistortPoints(pixels.reshape(-1, 1, 2), camera.K, np.array(camera.distortion), P=camera.K)
+    undistorted = undistorted.reshape(camera.height, camera.width, 2).astype(np.float32)
+    return undistorted[..., 0], undistorted[..., 1]
+
+
+@pytest.fixture(scope="module")
+def distorted_run_dir(run_dir, sequence_dir, tmp_path_factory):
+    """The run, pointed at a distorted copy of its sequence (the poses and keypoints stay valid: the run's frames
+    are the undistorted images)."""
+    root = tmp_path_factory.mktemp("distorted")
+    folder = _distorted_sequence(sequence_dir, root / "room_lens")
+    moved = root / "run"
+    shutil.copytree(run_dir, moved)
+    _point_sparse_map_at(moved, folder)
+    return moved
+
+
+def _point_sparse_map_at(run_dir, sequence_folder, **replaced) -> None:
+    with np.load(run_dir / "sparse_map.npz", allow_pickle=False) as data:
+        arrays = {name: data[name] for name in data.files}
+    arrays["sequence_folder"] = np.array(str(sequence_folder))
+    arrays.update(replaced)
+    with open(run_dir / "sparse_map.npz", "wb") as handle:
+        np.savez(handle, **arrays)
+
+
+def test_distorted_images_export_with_an_opencv_camera_whose_tracks_still_fit(distorted_run_dir, tmp_path):
+    model = _colmap_model(distorted_run_dir, tmp_path / "colmap", frames="keyframes", images="copy")
+    (camera,) = model.cameras.values()
+    # k3 is set: FULL_OPENCV holds OpenCV's 5-coefficient model (OPENCV has no k3).
+    assert camera.model == pycolmap.CameraModelId.FULL_OPENCV
+    k1, k2, p1, p2, k3 = LENS
+    assert np.allclose(camera.params[4:], [k1, k2, p1, p2, k3, 0, 0, 0])
+    assert np.median(_reprojection_errors_px(model)) < 2.0
+    export_run(distorted_run_dir, tmp_path / "nerfstudio", "nerfstudio", frames="every:10", images="copy")
+    contents = json.loads((tmp_path / "nerfstudio" / "transforms.json").read_text())
+    assert contents["camera_model"] == "OPENCV"
+    assert [contents[key] for key in ("k1", "k2", "p1", "p2", "k3", "k4")] == [k1, k2, p1, p2, k3, 0.0]
+
+
+def test_distortion_agrees_with_opencv_and_pycolmap_for_a_scene_point(distorted_run_dir, tmp_path):
+    model = _colmap_model(distorted_run_dir, tmp_path / "colmap", frames="every:9", images="copy")
+    sensor_camera = open_sequence(read_sparse_map(distorted_run_dir / "sparse_map.npz").sequence_folder).sensor.camera
+    trajectory = read_tum_trajectory(distorted_run_dir / "trajectory.txt")
+    point_world = _scene_point(trajectory, (-0.8, -0.55, 2.5))  # towards the top-left corner, where the lens bends most
+    for image in model.images.values():
+        camera_from_world = inverse(trajectory.world_from_camera[int(image.name[:6])])
+        pinhole_pixel = sensor_camera.undistorted().project(transform_points(camera_from_world, point_world[None]))
+        ours = pixels_in_images(pinhole_pixel, sensor_camera)[0]
+        assert np.abs(image.project_point(point_world) - COLMAP_PIXEL_OFFSET - ours).max() < 1e-6
+        assert np.linalg.norm(ours - pinhole_pixel[0]) > 1.0  # the lens does move the point
+
+
+def _edge_columns(image: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Sub-pixel column per row where the grey level crosses mid-way from dark (left) to bright (right)."""
+    grey = image.astype(np.float64).mean(axis=2) if image.ndim == 3 else image.astype(np.float64)
+    columns = []
+    for row in rows:
+        line = grey[row]
+        crossing = int(np.flatnonzero(line >= 127.5)[0])
+        columns.append(crossing - 1 + (127.5 - line[crossing - 1]) / (line[crossing] - line[crossing - 1]))
+    return np.array(columns)
+
+
+def _line_residual_px(rows: np.ndarray, columns: np.ndarray) -> float:
+    fit = np.polyfit(rows, columns, 1)
+    return float(np.abs(np.polyval(fit, rows) - columns).max())
+
+
+def test_undistort_keeps_a_straight_edge_straight_as_opencv_does(distorted_run_dir, tmp_path):
+    sequence = open_sequence(read_sparse_map(distorted_run_dir / "sparse_map.npz").sequence_folder)
+    camera = sequence.sensor.camera
+    # Frame 0 becomes the lens's image of a straight, slanted edge near the left border (where the lens bends most).
+    rows, columns = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    # A soft edge (a 4-pixel ramp), so that the sub-pixel crossing survives resampling.
+    pinhole = np.clip((columns - (12.0 + 0.05 * rows)) * 64.0 + 127.5, 0, 255)
+    pinhole = np.repeat(pinhole[..., None], 3, axis=2).astype(np.float32)
+    distorted = cv2.remap(pinhole, *_distorting_maps(camera), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    cv2.imwrite(str(sequence.rgb_paths[0]), np.round(distorted).astype(np.uint8))
+
+    model = _colmap_model(distorted_run_dir, tmp_path / "colmap", frames="every:100", images="undistort")
+    (colmap_camera,) = model.cameras.values()
+    assert colmap_camera.model == pycolmap.CameraModelId.PINHOLE
+    exported = cv2.imread(str(tmp_path / "colmap" / "images" / "000000.png"))
+    raw = cv2.imread(str(sequence.rgb_paths[0]))
+    opencv = cv2.undistort(raw, camera.K, np.array(camera.distortion))
+    rows_checked = np.arange(5, camera.height - 5)
+    assert _line_residual_px(rows_checked, _edge_columns(raw, rows_checked)) > 1.0  # the lens bends it
+    assert _line_residual_px(rows_checked, _edge_columns(exported, rows_checked)) < 0.1
+    assert np.abs(_edge_columns(exported, rows_checked) - _edge_columns(opencv, rows_checked)).max() < 0.05
+    assert np.abs(_edge_columns(exported, rows_checked) - (12.0 + 0.05 * rows_checked)).max() < 0.1
+
+
+def test_nerfstudio_export_names_images_depth_and_points(run_dir, sequence_dir, tmp_path):
+    output = tmp_path / "nerfstudio"
+    export_run(run_dir, output, "nerfstudio", frames="every:5", images="copy")
+    contents = json.loads((output / "transforms.json").read_text())
+    camera = open_sequence(sequence_dir).camera
+    trajectory = read_tum_trajectory(run_dir / "trajectory.txt")
+    assert contents["camera_model"] == "PINHOLE"
+    assert (contents["w"], contents["h"], contents["fl_x"], contents["fl_y"]) == (160, 120, camera.fx, camera.fy)
+    assert (contents["cx"], contents["cy"]) == (camera.cx + 0.5, camera.cy + 0.5)
+    assert all(contents[key] == 0.0 for key in ("k1", "k2", "p1", "p2"))
+    assert [frame["file_path"] for frame in contents["frames"]] == [f"images/{i:06d}.png" for i in (0, 5, 10, 15)]
+    sequence = open_sequence(sequence_dir)
+    for frame, index in zip(contents["frames"], (0, 5, 10, 15)):
+        expected = trajectory.world_from_camera[index] @ np.diag([1.0, -1.0, -1.0, 1.0])
+        assert np.abs(np.array(frame["transform_matrix"]) - expected).max() < 1e-12
+        assert (output / frame["file_path"]).is_file()
+        depth = cv2.imread(str(output / frame["depth_file_path"]), cv2.IMREAD_UNCHANGED)
+        assert depth.dtype == np.uint16
+        assert np.abs(depth / DEPTH_PER_METRE - sequence[index].depth_m).max() <= 0.5 / DEPTH_PER_METRE + 1e-6
+    ply = (output / contents["ply_file_path"]).read_bytes()
+    assert f"element vertex {len(read_sparse_map(run_dir / 'sparse_map.npz').points_world_m)}".encode() in ply
+
+
+def test_open3d_run_exports_the_mesh_vertices_as_points(sequence_dir, tmp_path):
+    run = tmp_path / "run"
+    reconstruct(sequence_dir, run, load_config(None, ["mapper.enabled=false", "frontend.kind=open3d_f2f",
+                                                      "input.max_frames=8"]), progress=False)
+    result = export_run(run, tmp_path / "colmap", "colmap", frames="all")
+    assert "mesh.ply" in result.points_source and "no sparse map" in result.points_source
+    model = pycolmap.Reconstruction(str(tmp_path / "colmap" / "sparse" / "0"))
+    mesh = read_mesh(run / "mesh.ply")
+    assert model.num_points3D() == len(mesh.vertices) > 100 and model.num_images() == 8
+    assert model.compute_num_observations() == 0
+
+
+def test_cli_export_prints_what_it_wrote(run_dir, tmp_path):
+    result = CliRunner().invoke(main, ["export", str(run_dir), "--format", "colmap", "-o", str(tmp_path / "out"),
+                                       "--frames", "every:4", "--text"])
+    assert result.exit_code == 0, result.output
+    assert "wrote 5 images" in result.output and "ORB frontend's map points" in result.output
+    assert (tmp_path / "out" / "sparse" / "0" / "points3D.txt").is_file()
+
+
+def _refused(arguments, tmp_path) -> str:
+    result = CliRunner().invoke(main, ["export", *map(str, arguments)])
+    assert result.exit_code == 2, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    # Nothing half-written: no staging folder is left beside the target.
+    assert not list(tmp_path.glob(".*partial"))
+    return lines[0]
+
+
+def test_bad_input_is_refused_in_one_line_leaving_nothing(run_dir, sequence_dir, tmp_path):
+    no_trajectory = tmp_path / "no_trajectory"
+    shutil.copytree(run_dir, no_trajectory)
+    (no_trajectory / "trajectory.txt").unlink()
+    line = _refused([no_trajectory, "--format", "colmap", "-o", tmp_path / "a"], tmp_path)
+    assert "trajectory.txt" in line and not (tmp_path / "a").exists()
+
+    moved = tmp_path / "moved"
+    shutil.copytree(run_dir, moved)
+    _point_sparse_map_at(moved, tmp_path / "gone" / "room")
+    line = _refused([moved, "--format", "nerfstudio", "-o", tmp_path / "b"], tmp_path)
+    assert "gone" in line and "sequence folder" in line and not (tmp_path / "b").exists()
+
+    taken = tmp_path / "taken"
+    taken.mkdir()
+    (taken / "keep.txt").write_text("mine")
+    line = _refused([run_dir, "--format", "colmap", "-o", taken], tmp_path)
+    assert "not empty" in line and [p.name for p in taken.iterdir()] == ["keep.txt"]
+
+    line = _refused([run_dir, "--format", "colmap", "-o", tmp_path / "c", "--frames", "every:x"], tmp_path)
+    assert "--frames" in line and not (tmp_path / "c").exists()
+
+
+def test_an_export_that_fails_midway_leaves_nothing(run_dir, sequence_dir, tmp_path):
+    """A colour image missing from the sequence stops the export while it copies images: no folder appears."""
+    sequence_copy = tmp_path / "room"
+    shutil.copytree(sequence_dir, sequence_copy)
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    _point_sparse_map_at(run, sequence_copy)
+    victim = open_sequence(sequence_copy).rgb_paths[12]
+    victim.unlink()
+    with pytest.raises(ExportError, match=victim.name):
+        export_run(run, tmp_path / "out", "colmap", frames="all")
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".*partial"))
