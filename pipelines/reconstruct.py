@@ -12,6 +12,7 @@ import logging
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -27,6 +28,7 @@ from tambridge.checkpoint import (
 )
 from tambridge.config import Config, check_config, config_for_camera, to_dict, to_yaml
 from tambridge.device import device_summary, resolve_device
+from tambridge.errors import TrackingFailedError
 from tambridge.evaluation.mapping import mapping_metrics
 from tambridge.evaluation.metrics import DeviceMetrics, RunMetrics, TrajectoryMetrics, write_metrics
 from tambridge.evaluation.report import REPORT_FILES, write_run_report
@@ -150,6 +152,7 @@ def reconstruct(
             tracking = track_frames(sequence, frontend, mapping, counters, run_log, start_frame=start_frame,
                                     prefetch=config.frontend.prefetch, progress=progress, checkpoints=checkpoints,
                                     live_view=live_view, stops=stops)
+            check_tracked(sequence, tracking)
             # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
             peak_memory_tracking_mb = peak_memory_mb()
             write_tum_trajectory(output_dir / "trajectory.txt", tracking.trajectory)
@@ -232,6 +235,15 @@ def track_frames(
                 stop_after_frame(stops.requested, index + 1, len(sequence), checkpoints, run_log)
     with run_log.stage("tracking"):
         return frontend.finish()
+
+
+def check_tracked(sequence: RgbdSequence, tracking: FrontendResult) -> None:
+    """Refuse to write a trajectory in which no frame after the first was tracked (it would be the first pose
+    repeated, or a constant-velocity guess): a :class:`TrackingFailedError` before any result is written."""
+    if len(sequence) > 1 and not np.asarray(tracking.tracked)[1:].any():
+        raise TrackingFailedError(
+            f"{sequence.folder}: none of the {len(sequence) - 1} frames after the first could be tracked (run.log says "
+            "why for each); check that the images have texture and depth and that the camera file fits them")
 
 
 def stop_after_frame(signum: int, next_frame: int, frame_count: int, checkpoints: KeyframeCheckpoints | None,

@@ -36,3 +36,8 @@ class TrajectoryEvaluationError(TambridgeError, ValueError):
 
 class ExportError(TambridgeError):
     """A run folder cannot be exported (results or sequence missing, a model the target format cannot hold)."""
+
+
+class TrackingFailedError(TambridgeError):
+    """No frame after the first could be tracked: the run has no trajectory to give (images without texture or
+    depth, a wrong camera)."""

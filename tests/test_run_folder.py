@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -220,3 +221,22 @@ def test_an_output_folder_that_cannot_be_made_is_one_line(synthetic_sequence_dir
                    *_set(FAST)])
     assert result.exit_code == 2, result.output
     assert result.output.strip() == f"error: {tmp_path / 'file' / 'out'}: Not a directory"
+
+
+def test_a_sequence_where_no_frame_tracks_ends_with_an_error_not_an_identity_trajectory(tmp_path):
+    folder = tmp_path / "textureless"
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    for index in range(6):
+        cv2.imwrite(str(folder / f"rgb/{index}.png"), np.full((120, 160, 3), 128, np.uint8))
+        cv2.imwrite(str(folder / f"depth/{index}.png"), np.full((120, 160), 10000, np.uint16))
+    (folder / "rgb.txt").write_text("".join(f"{index / 30:.6f} rgb/{index}.png\n" for index in range(6)))
+    (folder / "depth.txt").write_text("".join(f"{index / 30:.6f} depth/{index}.png\n" for index in range(6)))
+    (folder / "camera.yaml").write_text("width: 160\nheight: 120\nfx: 130\nfy: 130\ncx: 79.5\ncy: 59.5\ndepth_scale: 5000\n")
+    out = tmp_path / "out"
+    result = _run(["reconstruct", str(folder), "-o", str(out), "--quiet", *_set(FAST)])
+    assert result.exit_code == 2
+    assert result.output.strip().endswith("none of the 5 frames after the first could be tracked (run.log says why for "
+                                          "each); check that the images have texture and depth and that the camera "
+                                          "file fits them")
+    assert not (out / "trajectory.txt").exists() and not (out / "metrics.json").exists()
