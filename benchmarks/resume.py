@@ -45,6 +45,22 @@ def checkpoint_frame(path: Path) -> int | None:
     return None if checkpoint is None else checkpoint.next_frame
 
 
+def kill(command: list[str], out: Path, options: list[str], delay_s: float) -> float:
+    """Start a run into ``out`` and SIGKILL it after ``delay_s``; a run that finishes sooner (the machine got
+    faster) is removed and started again with a shorter delay. Returns the delay it was killed after."""
+    for _ in range(4):
+        child = subprocess.Popen([*command, "-o", str(out), *options, "--overwrite"], stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.DEVNULL)
+        try:
+            child.wait(timeout=delay_s)
+        except subprocess.TimeoutExpired:
+            child.send_signal(signal.SIGKILL)
+            child.wait()
+            return delay_s
+        delay_s *= 0.75
+    sys.exit(f"{out}: every run ended before it could be killed")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sequence", type=Path, required=True)
@@ -80,21 +96,14 @@ def main() -> None:
               f"{'same timestamps':>16}")
         for moment in arguments.moments:
             out = Path(temp) / f"killed_{moment:.2f}"
-            child = subprocess.Popen([*command, "-o", str(out), *options], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL)
-            try:
-                child.wait(timeout=moment * full_wall_s)
-                sys.exit(f"the run at {moment:.2f} ended (exit {child.returncode}) before it could be killed")
-            except subprocess.TimeoutExpired:
-                child.send_signal(signal.SIGKILL)
-                child.wait()
+            delay_s = kill(command, out, options, moment * full_wall_s)
             frame = checkpoint_frame(checkpoint_path(out))
             size_mb = checkpoint_path(out).stat().st_size / 1e6 if frame is not None else 0.0
             subprocess.run([*command, "-o", str(out), *options, "--resume"], check=True, stdout=subprocess.DEVNULL)
             resumed = np.loadtxt(out / "trajectory.txt")
             same_stamps = resumed.shape == reference.shape and bool(np.array_equal(resumed[:, 0], reference[:, 0]))
             difference_m = float(np.abs(resumed[:, 1:4] - reference[:, 1:4]).max()) if same_stamps else float("nan")
-            row = {"moment": moment, "killed_after_s": moment * full_wall_s, "checkpoint_frame": frame,
+            row = {"moment": moment, "killed_after_s": delay_s, "checkpoint_frame": frame,
                    "checkpoint_mb": size_mb, "max_position_difference_m": difference_m,
                    "every_frame_posed": same_stamps}
             result["kills"].append(row)
