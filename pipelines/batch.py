@@ -273,7 +273,7 @@ def _run_tasks(ray, sequences: Sequence[BatchSequence], out_dir: Path, preset: s
         submit(sequence)
     settled = len(rows) - len(sequences)
     bar = tqdm(total=len(rows), initial=settled, desc="batch", unit="seq", disable=not progress, dynamic_ncols=True)
-    written = time.monotonic()
+    written, shown = time.monotonic(), ""
     try:
         while in_flight:
             ready, _ = ray.wait(list(in_flight), num_returns=len(in_flight), timeout=1.0)
@@ -287,10 +287,13 @@ def _run_tasks(ray, sequences: Sequence[BatchSequence], out_dir: Path, preset: s
                 rows[sequence.name] = _row(sequence, out_dir, attempt, error, attempts[sequence.name])
                 bar.update()
             failed = sum(row.status == Status.failed for row in rows.values())
+            # Ray does not say which tasks in flight have started: those the cluster's CPUs hold are counted running.
             capacity = int(ray.cluster_resources().get("CPU", 0) // options.cpus_per_run)
             running = min(len(in_flight), capacity)
-            bar.set_postfix_str(f"done {bar.n - failed}, running {running}, queued {len(in_flight) - running}, "
-                                f"failed {failed}", refresh=True)
+            state = f"done {bar.n - failed}, running {running}, queued {len(in_flight) - running}, failed {failed}"
+            if state != shown:
+                bar.set_postfix_str(state)
+                shown = state
             if time.monotonic() - written > SUMMARY_INTERVAL_S:
                 write_summary(out_dir, list(rows.values()), batch)
                 written = time.monotonic()
