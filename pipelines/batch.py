@@ -38,7 +38,6 @@ import tambridge
 from tambridge.batch.sequences import BatchSequence
 from tambridge.batch.summary import SequenceRow, Status, is_finished, read_rows, with_metrics, write_summary
 from tambridge.checkpoint import checkpoint_path
-from tambridge.config import check_config, load_config
 from tambridge.errors import TambridgeError
 
 logger = logging.getLogger("tambridge.pipelines.batch")
@@ -199,6 +198,9 @@ def run_batch(sequences: Sequence[BatchSequence], out_dir: Path, options: BatchO
     retried up to ``options.retries`` times, then the sequence is failed with its last error line; the others go on.
     Ctrl-C stops the running runs (a rerun resumes those with a checkpoint) and returns with ``interrupted``.
     """
+    # Here, not at the top: Ray workers import this module for run_sequence, and the config layer imports torch.
+    from tambridge.config import check_config, load_config
+
     # A bad preset or --set stops the batch here, not in every task.
     check_config(load_config(options.preset, options.overrides))
     out_dir = Path(out_dir).resolve()

@@ -200,7 +200,7 @@ def _free_ports(count: int) -> list[int]:
 def _ray_start(arguments: list[str], log: Path, environment: dict) -> subprocess.Popen:
     """``ray start --block`` (it stops the node's processes when terminated), once its node is up."""
     with open(log, "w") as handle:
-        node = subprocess.Popen([shutil.which("ray"), "start", "--block", "--disable-usage-stats",
+        node = subprocess.Popen([sys.executable, "-m", "ray.scripts.scripts", "start", "--block", "--disable-usage-stats",
                                  "--num-cpus=1", "--object-store-memory=100000000",
                                  *arguments], stdout=handle, stderr=subprocess.STDOUT, env=environment)
     _wait_for(lambda: "Ray runtime started" in log.read_text() or node.poll() is not None, 120, f"ray start ({log})")
