@@ -29,7 +29,7 @@ from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
 ROOT = Path(__file__).resolve().parents[1]
 # Tracking only, inline: the batch is about scheduling, skipping and resuming runs, not their quality.
 RUN_OPTIONS = ("mapper.enabled=false", "mesh.enabled=false", "frontend.orb.mapping_thread=false")
-SHORT_FRAMES, LONG_FRAMES = 6, 60
+SHORT_FRAMES, LONG_FRAMES = 6, 150
 
 
 def _batch_command(sequences, out_dir, *extra) -> list[str]:
@@ -147,6 +147,18 @@ def test_a_corrupt_sequence_fails_alone_and_the_batch_says_so(sequences, tmp_pat
     assert not (out_dir / "corrupt" / "metrics.json").exists()
 
 
+def _processes_naming(folder: Path) -> list[int]:
+    """The processes whose command line names ``folder`` (Linux: read from /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and str(folder) in (entry / "cmdline").read_bytes().decode(errors="replace"):
+                found.append(int(entry.name))
+        except OSError:
+            continue
+    return found
+
+
 def _wait_for(condition, timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not condition():
@@ -169,10 +181,11 @@ def test_a_killed_batch_reruns_only_what_did_not_finish(sequences, tmp_path):
         driver.send_signal(signal.SIGKILL)
         driver.wait()
     assert not (out_dir / "long" / "metrics.json").exists(), "the long run finished before the driver was killed"
+    # The killed driver's local Ray takes its workers with it, and each worker its run.
+    _wait_for(lambda: not _processes_naming(out_dir), 60, "the killed batch's runs to end")
+    assert not (out_dir / "long" / "metrics.json").exists(), "the long run finished after the driver was killed"
     finished = [name for name in names if (out_dir / name / "metrics.json").exists()]
     modified = {path: path.stat().st_mtime_ns for name in finished for path in (out_dir / name).rglob("*")}
-    # The killed driver's local Ray takes its workers and their runs with it.
-    time.sleep(2.0)
 
     rerun = subprocess.run(command, cwd=ROOT, env=_environment(), capture_output=True, text=True, timeout=300)
 
