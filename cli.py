@@ -127,6 +127,45 @@ def reconstruct(sequence_dir, output_dir, preset, overrides, max_frames, stride,
     click.echo(f"report: {Path(output_dir) / 'report' / 'index.html'}")
 
 
+@main.command()
+@click.argument("sequences", nargs=-1, required=True)
+@click.option("-o", "--output", "output_dir", type=click.Path(path_type=Path), required=True,
+              help="Output folder: OUT/<sequence name>/ per sequence, and the batch's summary.")
+@click.option("--config", "preset", type=click.Path(path_type=Path), help="YAML preset (configs/*.yaml).")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override a config key, e.g. mapper.iterations=50.")
+@click.option("--address", metavar="auto|HOST:PORT",
+              help="A Ray cluster made with `ray start` (default: $RAY_ADDRESS, else a Ray on this machine).")
+@click.option("--cpus-per-run", type=click.IntRange(min=1), default=1, show_default=True,
+              help="CPUs Ray reserves for one sequence; its run's thread count.")
+@click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
+              help="Attempts after the first for a sequence that fails.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def batch(sequences, output_dir, preset, overrides, address, cpus_per_run, retries, quiet) -> None:
+    """Reconstruct many SEQUENCES (folders, glob patterns, or text files of one folder a line) on Ray.
+
+    Each sequence is written to OUT/<name>/ as `reconstruct` would; frames are read by each worker from the path
+    given, so on a cluster that path and OUT must be on a file system every node sees. Rerunning the command skips
+    finished sequences and resumes killed ones from their checkpoint. Writes OUT/summary.json, OUT/summary.csv and
+    OUT/index.html; exits 1 when a sequence failed, 130 when stopped with Ctrl-C.
+    """
+    from pipelines.batch import BatchOptions, run_batch
+    from tambridge.batch.sequences import resolve_sequences
+    from tambridge.batch.summary import counts
+
+    options = BatchOptions(preset, tuple(overrides), address, cpus_per_run, retries)
+    result = run_batch(resolve_sequences(sequences), output_dir, options, progress=not quiet)
+    click.echo(", ".join(f"{count} {status}" for status, count in counts(result.rows).items() if count))
+    click.echo(f"summary: {Path(output_dir) / 'index.html'}")
+    if result.interrupted:
+        click.echo("batch interrupted: run the same command again to go on (finished sequences are skipped)", err=True)
+        sys.exit(130)
+    for row in result.failed:
+        click.echo(f"failed: {row.name}: {row.error}", err=True)
+    if result.failed:
+        click.echo(f"error: {len(result.failed)} of {len(result.rows)} sequences failed (see summary.json)", err=True)
+        sys.exit(1)
+
+
 @main.command("config")
 @click.option("--config", "preset", type=click.Path(path_type=Path), help="YAML preset (configs/*.yaml).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override a config key, e.g. mapper.iterations=50.")

@@ -1,0 +1,276 @@
+"""``tambridge batch``: sequences named on the command line, the summary, and real Ray batches (a local Ray, a killed
+driver and its rerun, a two-node cluster made with ``ray start``)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from pipelines.batch import error_line
+from tambridge.batch.sequences import resolve_sequences
+from tambridge.batch.summary import SUMMARY_VERSION, SequenceRow, Status, write_summary
+from tambridge.checkpoint import checkpoint_path
+from tambridge.errors import TambridgeError
+from tambridge.evaluation.metrics import read_metrics
+from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
+
+ROOT = Path(__file__).resolve().parents[1]
+# Tracking only, inline: the batch is about scheduling, skipping and resuming runs, not their quality.
+RUN_OPTIONS = ("mapper.enabled=false", "mesh.enabled=false", "frontend.orb.mapping_thread=false")
+SHORT_FRAMES, LONG_FRAMES = 6, 150
+
+
+def _batch_command(sequences, out_dir, *extra) -> list[str]:
+    options = [argument for option in RUN_OPTIONS for argument in ("--set", option)]
+    return [sys.executable, str(ROOT / "cli.py"), "batch", *map(str, sequences), "-o", str(out_dir), "--quiet",
+            *options, *extra]
+
+
+def _environment(**extra) -> dict:
+    return dict(os.environ, PYTHONPATH=str(ROOT), RAY_USAGE_STATS_ENABLED="0", **extra)
+
+
+def _summary(out_dir: Path) -> dict:
+    document = json.loads((out_dir / "summary.json").read_text())
+    assert document["summary_version"] == SUMMARY_VERSION
+    return {row["name"]: row for row in document["sequences"]}
+
+
+def _sequence(folder: Path, frames: int) -> Path:
+    write_synthetic_sequence(folder, SynthOptions(frame_count=frames, width=160, height=120))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def sequences(tmp_path_factory) -> dict[str, Path]:
+    """Two short synthetic sequences, a long one, and a corrupt one (its first colour image is not an image)."""
+    root = tmp_path_factory.mktemp("batch_sequences")
+    folders = {name: _sequence(root / name, SHORT_FRAMES) for name in ("first", "second")}
+    folders["long"] = _sequence(root / "long", LONG_FRAMES)
+    folders["corrupt"] = _sequence(root / "corrupt", SHORT_FRAMES)
+    sorted((folders["corrupt"] / "rgb").iterdir())[0].write_bytes(b"not a png")
+    return folders
+
+
+# ---- without Ray ----------------------------------------------------------------------------------------------------
+
+
+def test_sequences_come_from_folders_patterns_and_list_files(tmp_path):
+    for name in ("a", "b", "c"):
+        (tmp_path / "data" / name).mkdir(parents=True)
+    (tmp_path / "data" / "notes.txt").write_text("x")
+    listing = tmp_path / "list.txt"
+    listing.write_text("# tonight\ndata/c\n\ndata/a  # again\n")
+    found = resolve_sequences([str(tmp_path / "data" / "b"), str(tmp_path / "data" / "*"), str(listing)])
+    assert [(sequence.name, sequence.folder) for sequence in found] == [
+        (name, (tmp_path / "data" / name).resolve()) for name in ("b", "a", "c")]
+
+    (tmp_path / "other" / "a").mkdir(parents=True)
+    with pytest.raises(TambridgeError, match="two sequences named 'a'"):
+        resolve_sequences([str(tmp_path / "data" / "a"), str(tmp_path / "other" / "a")])
+    with pytest.raises(TambridgeError, match="no such folder"):
+        resolve_sequences([str(tmp_path / "missing")])
+    with pytest.raises(TambridgeError, match="matches no folder"):
+        resolve_sequences([str(tmp_path / "nothing*")])
+    listing.write_text("data/z\n")
+    with pytest.raises(TambridgeError, match=r"list.txt:1: 'data/z' is not a folder"):
+        resolve_sequences([str(listing)])
+
+
+def test_error_line_is_the_runs_error_or_its_signal_or_its_last_line():
+    stderr = "WARNING tambridge: frame 3 has no depth\nerror: rgb/0.png: cannot decode image\n"
+    assert error_line(stderr, 2) == "rgb/0.png: cannot decode image"
+    assert error_line("", -signal.SIGKILL) == "killed by SIGKILL (out of memory?)"
+    assert error_line("Traceback (most recent call last):\n  File x\nRuntimeError: boom\n", 1) == "RuntimeError: boom"
+    assert error_line("", 3) == "exit status 3 without a message"
+
+
+def test_summary_has_one_row_per_sequence_in_json_csv_and_html(tmp_path):
+    rows = [SequenceRow(name="ok", sequence="/data/ok", status=Status.finished, attempts=1, frames=30, keyframes=9,
+                        ate_rmse_m=0.0125, psnr_db=21.5, ssim=0.71, fps=3.5, wall_s=40.0, node="n1", node_id="ab",
+                        report="ok/report/index.html"),
+            SequenceRow(name="bad <1>", sequence="/data/bad", status=Status.failed, attempts=3, error="cannot read")]
+    write_summary(tmp_path, rows, {"output": str(tmp_path)})
+    document = json.loads((tmp_path / "summary.json").read_text())
+    assert document["counts"] == {"finished": 1, "skipped": 0, "failed": 1, "interrupted": 0, "pending": 0}
+    assert document["sequences"][0]["ate_rmse_m"] == 0.0125 and document["sequences"][1]["error"] == "cannot read"
+    with open(tmp_path / "summary.csv", newline="") as handle:
+        table = list(csv.DictReader(handle))
+    assert [(row["name"], row["status"], row["frames"], row["psnr_db"]) for row in table] == [
+        ("ok", "finished", "30", "21.5"), ("bad <1>", "failed", "", "")]
+    page = (tmp_path / "index.html").read_text()
+    assert '<a href="ok/report/index.html">ok</a>' in page and "<td>1.25</td>" in page
+    assert "bad &lt;1&gt;" in page and "1 finished, 1 failed" in page
+
+
+# ---- on Ray ---------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_a_corrupt_sequence_fails_alone_and_the_batch_says_so(sequences, tmp_path):
+    out_dir = tmp_path / "out"
+    names = ("first", "second", "corrupt")
+    batch = subprocess.run(_batch_command([sequences[name] for name in names], out_dir, "--retries", "1"),
+                           cwd=ROOT, env=_environment(), capture_output=True, text=True, timeout=300)
+
+    assert batch.returncode == 1, batch.stderr
+    assert "error: 1 of 3 sequences failed" in batch.stderr
+    assert "failed: corrupt: " in batch.stderr and "cannot decode image" in batch.stderr
+    rows = _summary(out_dir)
+    assert list(rows) == list(names)
+    for name in ("first", "second"):
+        row, metrics = rows[name], read_metrics(out_dir / name / "metrics.json")
+        assert (row["status"], row["attempts"], row["error"]) == ("finished", 1, None)
+        assert (row["frames"], row["keyframes"]) == (SHORT_FRAMES, metrics.keyframes)
+        assert row["ate_rmse_m"] == metrics.trajectory.ate_rmse_m
+        assert row["rpe_trans_rmse_m"] == metrics.trajectory.rpe_trans_rmse_m
+        assert row["psnr_db"] is None and row["ssim"] is None  # the mapper is off
+        assert row["fps"] == metrics.fps_end_to_end and row["peak_memory_mb"] == metrics.peak_memory_mb
+        assert row["node"] == socket.gethostname() and row["wall_s"] > metrics.seconds_total
+        assert row["report"] == f"{name}/report/index.html"
+        assert f'<a href="{name}/report/index.html">{name}</a>' in (out_dir / "index.html").read_text()
+    corrupt = rows["corrupt"]
+    assert (corrupt["status"], corrupt["attempts"], corrupt["frames"]) == ("failed", 2, None)
+    assert str(sequences["corrupt"] / "rgb") in corrupt["error"] and "cannot decode image" in corrupt["error"]
+    assert not (out_dir / "corrupt" / "metrics.json").exists()
+
+
+def _processes_naming(folder: Path) -> list[int]:
+    """The processes whose command line names ``folder`` (Linux: read from /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and str(folder) in (entry / "cmdline").read_bytes().decode(errors="replace"):
+                found.append(int(entry.name))
+        except OSError:
+            continue
+    return found
+
+
+def _wait_for(condition, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
+
+
+@pytest.mark.slow
+def test_a_killed_batch_reruns_only_what_did_not_finish(sequences, tmp_path):
+    out_dir = tmp_path / "out"
+    names = ("first", "long", "second")
+    command = _batch_command([sequences[name] for name in names], out_dir, "--set", "checkpoint.every_keyframes=2")
+    driver = subprocess.Popen(command, cwd=ROOT, env=_environment(), stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)
+    try:
+        # Halfway: a short sequence finished while the long one is between checkpoints.
+        _wait_for(lambda: any((out_dir / name / "metrics.json").exists() for name in ("first", "second"))
+                  and checkpoint_path(out_dir / "long").exists(), 240, "a finished run and a checkpoint")
+    finally:
+        driver.send_signal(signal.SIGKILL)
+        driver.wait()
+    assert not (out_dir / "long" / "metrics.json").exists(), "the long run finished before the driver was killed"
+    # The killed driver's local Ray takes its workers with it, and each worker its run.
+    _wait_for(lambda: not _processes_naming(out_dir), 60, "the killed batch's runs to end")
+    assert not (out_dir / "long" / "metrics.json").exists(), "the long run finished after the driver was killed"
+    finished = [name for name in names if (out_dir / name / "metrics.json").exists()]
+    modified = {path: path.stat().st_mtime_ns for name in finished for path in (out_dir / name).rglob("*")}
+
+    rerun = subprocess.run(command, cwd=ROOT, env=_environment(), capture_output=True, text=True, timeout=300)
+
+    assert rerun.returncode == 0, rerun.stderr
+    rows = _summary(out_dir)
+    assert {name: row["status"] for name, row in rows.items()} == {
+        name: "skipped" if name in finished else "finished" for name in names}
+    assert rows["long"]["resumed"] is True and rows["long"]["frames"] == LONG_FRAMES
+    assert "resuming from" in (out_dir / "long" / "run.log").read_text()
+    assert {path: path.stat().st_mtime_ns for path in modified} == modified
+    for name in names:
+        assert read_metrics(out_dir / name / "metrics.json").frames == rows[name]["frames"]
+
+
+def _free_ports(count: int) -> list[int]:
+    sockets = [socket.socket() for _ in range(count)]
+    for handle in sockets:
+        handle.bind(("127.0.0.1", 0))
+    ports = [handle.getsockname()[1] for handle in sockets]
+    for handle in sockets:
+        handle.close()
+    return ports
+
+
+def _ray_start(arguments: list[str], log: Path, environment: dict) -> subprocess.Popen:
+    """``ray start --block`` (it stops the node's processes when terminated), once its node is up."""
+    with open(log, "w") as handle:
+        node = subprocess.Popen([sys.executable, "-m", "ray.scripts.scripts", "start", "--block", "--disable-usage-stats",
+                                 "--num-cpus=1", "--object-store-memory=100000000",
+                                 *arguments], stdout=handle, stderr=subprocess.STDOUT, env=environment)
+    _wait_for(lambda: "Ray runtime started" in log.read_text() or node.poll() is not None, 120, f"ray start ({log})")
+    assert node.poll() is None, log.read_text()
+    return node
+
+
+def _stop(node: subprocess.Popen) -> None:
+    node.terminate()
+    try:
+        node.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        node.kill()
+        node.wait()
+
+
+@pytest.mark.slow
+def test_a_batch_runs_on_a_ray_cluster_made_with_ray_start(sequences, tmp_path):
+    # Loopback only: Ray turns 127.0.0.1 into the machine's network address, other 127.x addresses it keeps.
+    head_ip, worker_ip = "127.0.0.2", "127.0.0.3"
+    ports = iter(_free_ports(12))
+    environment = _environment(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=secrets.token_hex(16))
+    temp_dir = Path(tempfile.mkdtemp(prefix="tbray", dir="/tmp"))  # short: Ray's socket paths live under it
+
+    def node_ports(worker_ports: str) -> list[str]:
+        return [f"--node-manager-port={next(ports)}", f"--object-manager-port={next(ports)}",
+                f"--runtime-env-agent-port={next(ports)}", f"--metrics-export-port={next(ports)}",
+                f"--dashboard-agent-listen-port={next(ports)}", f"--dashboard-agent-grpc-port={next(ports)}",
+                f"--min-worker-port={worker_ports.split('-')[0]}", f"--max-worker-port={worker_ports.split('-')[1]}",
+                f"--temp-dir={temp_dir}"]
+
+    gcs_port = _free_ports(1)[0]
+    nodes = []
+    try:
+        nodes.append(_ray_start(["--head", "--include-dashboard=false", f"--node-ip-address={head_ip}", f"--port={gcs_port}",
+                                 *node_ports("47000-47049")], tmp_path / "head.log", environment))
+        address = f"{head_ip}:{gcs_port}"
+        nodes.append(_ray_start([f"--address={address}", f"--node-ip-address={worker_ip}",
+                                 *node_ports("47050-47099")], tmp_path / "worker.log", environment))
+        out_dir = tmp_path / "out"
+        batch = subprocess.run(_batch_command([sequences["first"], sequences["second"]], out_dir, "--address", address,
+                                              "--cpus-per-run", "1"),
+                               cwd=ROOT, env=environment, capture_output=True, text=True, timeout=300)
+        listing = subprocess.run(
+            [sys.executable, "-c", "import json, ray; ray.init(address=%r, log_to_driver=False); "
+             "print(json.dumps({n['NodeID']: n['NodeManagerAddress'] for n in ray.nodes() if n['Alive']}))" % address],
+            env=environment, capture_output=True, text=True, timeout=120)
+    finally:
+        for node in reversed(nodes):
+            _stop(node)
+        shutil.rmtree(temp_dir, ignore_errors=True)
+
+    assert batch.returncode == 0, batch.stderr
+    cluster = json.loads(listing.stdout.strip().splitlines()[-1])
+    assert sorted(cluster.values()) == [head_ip, worker_ip]
+    rows = _summary(out_dir)
+    assert [row["status"] for row in rows.values()] == ["finished", "finished"]
+    # One CPU a node and one a run: the two runs ran at once, one on each node.
+    assert sorted(cluster[row["node_id"]] for row in rows.values()) == [head_ip, worker_ip]
+    assert all(row["node"] == socket.gethostname() for row in rows.values())
