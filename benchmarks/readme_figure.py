@@ -38,10 +38,10 @@ PALETTE_COLOURS = 256  # a palette PNG keeps the picture small enough for a READ
 
 def default_frame(trajectory_timestamps_s: np.ndarray, keyframe_timestamps_s: np.ndarray) -> int:
     """Index into the trajectory of the frame halfway between the two middle keyframes (a novel view)."""
+    if len(keyframe_timestamps_s) < 2:
+        return len(trajectory_timestamps_s) // 2
     keyframe_indices = np.searchsorted(trajectory_timestamps_s, keyframe_timestamps_s)
     middle = len(keyframe_indices) // 2
-    if len(keyframe_indices) < 2:
-        return len(trajectory_timestamps_s) // 2
     return int((keyframe_indices[middle - 1] + keyframe_indices[middle]) // 2)
 
 
