@@ -170,7 +170,8 @@ def _wait_for(condition, timeout_s: float, what: str) -> None:
 def test_a_killed_batch_reruns_only_what_did_not_finish(sequences, tmp_path):
     out_dir = tmp_path / "out"
     names = ("first", "long", "second")
-    command = _batch_command([sequences[name] for name in names], out_dir, "--set", "checkpoint.every_keyframes=2")
+    command = _batch_command([sequences[name] for name in names], out_dir, "--set", "checkpoint.every_keyframes=2",
+                             "--set", "checkpoint.min_interval_s=0")
     driver = subprocess.Popen(command, cwd=ROOT, env=_environment(), stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL)
     try:
@@ -194,7 +195,7 @@ def test_a_killed_batch_reruns_only_what_did_not_finish(sequences, tmp_path):
     assert {name: row["status"] for name, row in rows.items()} == {
         name: "skipped" if name in finished else "finished" for name in names}
     assert rows["long"]["resumed"] is True and rows["long"]["frames"] == LONG_FRAMES
-    assert "resuming from" in (out_dir / "long" / "run.log").read_text()
+    assert "resuming at frame" in (out_dir / "long" / "run.log").read_text()
     assert {path: path.stat().st_mtime_ns for path in modified} == modified
     for name in names:
         assert read_metrics(out_dir / name / "metrics.json").frames == rows[name]["frames"]
