@@ -9,7 +9,7 @@ the GPU through gsplat; tracking, mesh and COLMAP stay on the CPU), and each row
 
 Each method runs as its own process (its peak memory is that process's ru_maxrss, read with wait4), writes its
 usual output folder under benchmarks/results/runs/, and the table is printed, written to
-benchmarks/results/run_all.json and copied into README.md between the results markers.
+benchmarks/results/run_all.json and copied into docs/benchmarks.md between the results markers.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.io.tum import open_sequence  # noqa: E402
 from tambridge.trajectory import read_tum_trajectory  # noqa: E402
 
-README_START = "<!-- results:start -->"
-README_END = "<!-- results:end -->"
+RESULTS_START = "<!-- results:start -->"
+RESULTS_END = "<!-- results:end -->"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,7 +141,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def describe_machine(gpu: str | None = None) -> str:
-    """CPU model, core count and Python version (and ``gpu``'s name), for the README line that says where the table
+    """CPU model, core count and Python version (and ``gpu``'s name), for the line that says where the table
     was measured."""
     model = platform.processor() or platform.machine()
     cpuinfo = Path("/proc/cpuinfo")
@@ -151,17 +151,18 @@ def describe_machine(gpu: str | None = None) -> str:
     return f"{model}, {os.cpu_count()} cores, Python {platform.python_version()}" + (f", {gpu}" if gpu else "")
 
 
-def update_readme(table: str, command: str, machine: str, date: str) -> None:
-    """Rewrite README.md's section between the results markers: the machine, the date, the command and the table."""
-    readme = ROOT / "README.md"
-    text = readme.read_text()
-    if README_START not in text:
+def update_results_doc(table: str, command: str, machine: str, date: str) -> None:
+    """Rewrite docs/benchmarks.md's section between the results markers: the machine, the date, the command and the
+    table."""
+    document = ROOT / "docs" / "benchmarks.md"
+    text = document.read_text()
+    if RESULTS_START not in text:
         return
-    head, rest = text.split(README_START, 1)
-    _, tail = rest.split(README_END, 1)
-    section = (f"{README_START}\nMeasured {date} on {machine} with `{command}`:\n\n"
-               f"{table}\n{README_END}")
-    atomic_write_text(readme, head + section + tail)
+    head, rest = text.split(RESULTS_START, 1)
+    _, tail = rest.split(RESULTS_END, 1)
+    section = (f"{RESULTS_START}\nMeasured {date} on {machine} with `{command}`:\n\n"
+               f"{table}\n{RESULTS_END}")
+    atomic_write_text(document, head + section + tail)
 
 
 def main() -> None:
@@ -172,14 +173,14 @@ def main() -> None:
                         help="tambridge runs map on CUDA with gsplat (--device cuda); stops at once when there is no GPU")
     parser.add_argument("--methods", nargs="*", help="subset of method names")
     parser.add_argument("--sequences", nargs="*", help="subset of sequence folder names")
-    parser.add_argument("--no-readme", action="store_true", help="do not rewrite README.md's results section")
-    parser.add_argument("--readme-only", action="store_true",
-                        help="run nothing: regenerate README.md's results section from benchmarks/results/run_all.json")
+    parser.add_argument("--no-doc", action="store_true", help="do not rewrite docs/benchmarks.md's results section")
+    parser.add_argument("--doc-only", action="store_true",
+                        help="run nothing: regenerate docs/benchmarks.md's results section from benchmarks/results/run_all.json")
     arguments = parser.parse_args()
     results_path = ROOT / "benchmarks" / "results" / "run_all.json"
-    if arguments.readme_only:
+    if arguments.doc_only:
         result = json.loads(results_path.read_text())
-        update_readme(format_table(result["rows"]), result["command"], result["machine"], result["date"][:10])
+        update_results_doc(format_table(result["rows"]), result["command"], result["machine"], result["date"][:10])
         return
     gpu = None
     if arguments.gpu:
@@ -218,8 +219,8 @@ def main() -> None:
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine, "command": command,
               "rows": rows}
     atomic_write_text(results_path, json.dumps(result, indent=2) + "\n")
-    if not arguments.no_readme:
-        update_readme(table, command, machine, result["date"][:10])
+    if not arguments.no_doc:
+        update_results_doc(table, command, machine, result["date"][:10])
 
 
 if __name__ == "__main__":
