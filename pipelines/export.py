@@ -117,9 +117,8 @@ def read_run(run_dir: Path) -> RunRecord:
     if not trajectory_path.is_file():
         raise ExportError(f"{trajectory_path}: not found; pass the -o folder of a finished 'tambridge reconstruct' run")
     # metrics.json is written last: its presence says the run finished.
-    read_metrics(run_dir / "metrics.json")
+    folder = Path(read_metrics(run_dir / "metrics.json").sequence)
     sparse_map = read_sparse_map(run_dir / "sparse_map.npz")
-    folder = sparse_map.sequence_folder
     if not folder.is_dir():
         raise ExportError(f"{folder}: the run's sequence folder is gone (moved or deleted); the export needs its "
                           f"images: put it back there")

@@ -3,6 +3,7 @@ against the run's own files; conventions checked on a hand-made scene point; bad
 
 import json
 import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -17,6 +18,7 @@ from pipelines.reconstruct import reconstruct
 from tambridge.camera import Camera
 from tambridge.config import load_config
 from tambridge.errors import ExportError
+from tambridge.evaluation.metrics import read_metrics
 from tambridge.export.colmap_model import COLMAP_PIXEL_OFFSET, ModelImage, build_model
 from tambridge.export.images import DEPTH_PER_METRE, pixels_in_images
 from tambridge.export.mesh import read_mesh
@@ -69,7 +71,8 @@ def _reprojection_errors_px(model) -> np.ndarray:
 def test_run_writes_its_sparse_map_with_observations(run_dir):
     sparse_map = read_sparse_map(run_dir / "sparse_map.npz")
     observations = sparse_map.observations
-    assert sparse_map.sequence_folder.is_absolute() and sparse_map.sequence_folder.is_dir()
+    sequence_folder = Path(read_metrics(run_dir / "metrics.json").sequence)
+    assert sequence_folder.is_absolute() and sequence_folder.is_dir()
     assert len(sparse_map.points_world_m) > 100 and len(observations) > 2 * len(sparse_map.points_world_m)
     assert set(np.unique(observations.keyframe_ids)) <= set(sparse_map.keyframe_frame_indices)
     assert np.array_equal(np.unique(observations.point_rows), np.arange(len(sparse_map.points_world_m)))
@@ -244,17 +247,15 @@ def distorted_run_dir(run_dir, sequence_dir, tmp_path_factory):
     folder = _distorted_sequence(sequence_dir, root / "room_lens")
     moved = root / "run"
     shutil.copytree(run_dir, moved)
-    _point_sparse_map_at(moved, folder)
+    _point_run_at(moved, folder)
     return moved
 
 
-def _point_sparse_map_at(run_dir, sequence_folder, **replaced) -> None:
-    with np.load(run_dir / "sparse_map.npz", allow_pickle=False) as data:
-        arrays = {name: data[name] for name in data.files}
-    arrays["sequence_folder"] = np.array(str(sequence_folder))
-    arrays.update(replaced)
-    with open(run_dir / "sparse_map.npz", "wb") as handle:
-        np.savez(handle, **arrays)
+def _point_run_at(run_dir, sequence_folder) -> None:
+    """Make a run's metrics.json name ``sequence_folder`` as the run's sequence (a moved or copied sequence)."""
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    metrics["sequence"] = str(sequence_folder)
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
 
 
 def test_distorted_images_export_with_an_opencv_camera_whose_tracks_still_fit(distorted_run_dir, tmp_path):
@@ -273,7 +274,7 @@ def test_distorted_images_export_with_an_opencv_camera_whose_tracks_still_fit(di
 
 def test_distortion_agrees_with_opencv_and_pycolmap_for_a_scene_point(distorted_run_dir, tmp_path):
     model = _colmap_model(distorted_run_dir, tmp_path / "colmap", frames="every:9", images="copy")
-    sensor_camera = open_sequence(read_sparse_map(distorted_run_dir / "sparse_map.npz").sequence_folder).sensor.camera
+    sensor_camera = open_sequence(read_metrics(distorted_run_dir / "metrics.json").sequence).sensor.camera
     trajectory = read_tum_trajectory(distorted_run_dir / "trajectory.txt")
     point_world = _scene_point(trajectory, (-0.8, -0.55, 2.5))  # towards the top-left corner, where the lens bends most
     for image in model.images.values():
@@ -301,7 +302,7 @@ def _line_residual_px(rows: np.ndarray, columns: np.ndarray) -> float:
 
 
 def test_undistort_keeps_a_straight_edge_straight_as_opencv_does(distorted_run_dir, tmp_path):
-    sequence = open_sequence(read_sparse_map(distorted_run_dir / "sparse_map.npz").sequence_folder)
+    sequence = open_sequence(read_metrics(distorted_run_dir / "metrics.json").sequence)
     camera = sequence.sensor.camera
     # Frame 0 becomes the lens's image of a straight, slanted edge near the left border (where the lens bends most).
     rows, columns = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
@@ -386,7 +387,7 @@ def test_bad_input_is_refused_in_one_line_leaving_nothing(run_dir, sequence_dir,
 
     moved = tmp_path / "moved"
     shutil.copytree(run_dir, moved)
-    _point_sparse_map_at(moved, tmp_path / "gone" / "room")
+    _point_run_at(moved, tmp_path / "gone" / "room")
     line = _refused([moved, "--format", "nerfstudio", "-o", tmp_path / "b"], tmp_path)
     assert "gone" in line and "sequence folder" in line and not (tmp_path / "b").exists()
 
@@ -406,7 +407,7 @@ def test_an_export_that_fails_midway_leaves_nothing(run_dir, sequence_dir, tmp_p
     shutil.copytree(sequence_dir, sequence_copy)
     run = tmp_path / "run"
     shutil.copytree(run_dir, run)
-    _point_sparse_map_at(run, sequence_copy)
+    _point_run_at(run, sequence_copy)
     victim = open_sequence(sequence_copy).rgb_paths[12]
     victim.unlink()
     with pytest.raises(ExportError, match=victim.name):

@@ -1,7 +1,6 @@
 """``sparse_map.npz``: what a run's frontend knows of the scene beyond its poses, for exporters.
 
-One ``.npz`` of plain arrays (read with ``allow_pickle=False``): ``sequence_folder`` (0-d str, the sequence's
-absolute path), ``keyframe_ids`` and ``keyframe_frame_indices`` (K,) int64, ``points_world_m`` (P, 3) float64,
+One ``.npz`` of plain arrays (read with ``allow_pickle=False``): ``keyframe_ids`` and ``keyframe_frame_indices`` (K,) int64, ``points_world_m`` (P, 3) float64,
 ``point_colours`` (P, 3) uint8 RGB, and the points' observations ``observation_point_rows``,
 ``observation_keyframe_ids`` (O,) int64 and ``observation_keypoints_px`` (O, 2) float64 (see
 :class:`~tambridge.frontend.contract.MapPointObservations`). The Open3D frontends keep no sparse map: P = O = 0.
@@ -24,19 +23,18 @@ from tambridge.frontend.contract import FrontendResult, MapPointObservations
 class SparseMap:
     """The contents of ``sparse_map.npz`` (see the module docstring); points in the world frame, metres."""
 
-    sequence_folder: Path
     keyframe_frame_indices: dict[int, int]
     points_world_m: np.ndarray
     point_colours: np.ndarray
     observations: MapPointObservations
 
 
-def write_sparse_map(path: Path, result: FrontendResult, sequence_folder: Path) -> None:
-    """Write ``result``'s keyframes and map points (with their observations) and the sequence's folder to ``path``."""
+def write_sparse_map(path: Path, result: FrontendResult) -> None:
+    """Write ``result``'s keyframes and map points (with their observations) to ``path``; the sequence's folder is
+    metrics.json's ``sequence``."""
     keyframe_ids = np.array(sorted(result.keyframe_frame_indices), np.int64)
     observations = result.map_point_observations
     arrays = {
-        "sequence_folder": np.array(str(Path(sequence_folder).resolve())),
         "keyframe_ids": keyframe_ids,
         "keyframe_frame_indices": np.array([result.keyframe_frame_indices[k] for k in keyframe_ids], np.int64),
         "points_world_m": np.asarray(result.map_points_world_m, np.float64).reshape(-1, 3),
@@ -59,7 +57,6 @@ def read_sparse_map(path: Path) -> SparseMap:
         with np.load(path, allow_pickle=False) as data:
             arrays = {name: data[name] for name in data.files}
         return SparseMap(
-            sequence_folder=Path(str(arrays["sequence_folder"])),
             keyframe_frame_indices=dict(zip(arrays["keyframe_ids"].tolist(), arrays["keyframe_frame_indices"].tolist())),
             points_world_m=arrays["points_world_m"].reshape(-1, 3),
             point_colours=arrays["point_colours"].reshape(-1, 3),
