@@ -133,7 +133,8 @@ def reconstruct(
         frontend = make_frontend(config.frontend, sequence.camera)
         mapping = MappingStage(sequence, config.mapper, config.bridge, run_log, device, config.seed) if config.mapper.enabled else None
         logger.info("Gaussian map, bridge and rendering evaluation on %s", device if mapping is not None else "(mapper off)")
-        counters = RunCounters()
+        # The run's clock started with the reading of the sequence, as end to end always has.
+        counters = RunCounters(started_s=read_started)
         if start is Start.RESUME and checkpoint is None:
             logger.warning("%s: no checkpoint (the run was stopped before its first one): starting from the first frame",
                            checkpoint_file)
@@ -157,7 +158,7 @@ def reconstruct(
             peak_memory_tracking_mb = peak_memory_mb()
             write_tum_trajectory(output_dir / "trajectory.txt", tracking.trajectory)
             write_tum_trajectory(output_dir / "keyframes.txt", tracking.keyframe_trajectory)
-            write_sparse_map(output_dir / "sparse_map.npz", tracking, sequence.folder)
+            write_sparse_map(output_dir / "sparse_map.npz", tracking)
             if mapping is not None:
                 mapping.finish(tracking.keyframe_poses)
                 with run_log.stage("export"):
