@@ -30,7 +30,7 @@ import numpy as np
 
 from tambridge.errors import CheckpointError
 from tambridge.files import atomic_path
-from tambridge.io.tum import read_file_list
+from tambridge.io.tum import RgbdSequence
 from tambridge.settings import NON_NEGATIVE, setting
 from tambridge.state import StateCodec, StateTypes, decode_state, dotted_items, encode_state
 
@@ -100,33 +100,22 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _sample_frame_files(folder: Path, timestamps_s: np.ndarray) -> list[Path]:
-    """The colour and depth image files of the first, middle and last of the frames at ``timestamps_s``, as the
-    folder's rgb.txt and depth.txt list them (each the entry nearest in time); none without those lists."""
-    if not len(timestamps_s) or not (folder / "rgb.txt").is_file() or not (folder / "depth.txt").is_file():
-        return []
-    files = []
-    for listing in (read_file_list(folder / "rgb.txt"), read_file_list(folder / "depth.txt")):
-        stamps = np.array([stamp for stamp, _ in listing])
-        for stamp in timestamps_s[sorted({0, len(timestamps_s) // 2, len(timestamps_s) - 1})]:
-            files.append(folder / listing[int(np.argmin(np.abs(stamps - stamp)))][1])
-    return files
-
-
-def sequence_fingerprint(folder: Path, timestamps_s: np.ndarray, sensor: object) -> dict:
+def sequence_fingerprint(sequence: RgbdSequence) -> dict:
     """What identifies the frames a run reads: the resolved folder, frame count, a hash of the timestamps, the
     sensor (camera, depth encoding and, for unregistered colour, the colour camera: a resumed run must resample
     colour alike), and SHA-256 of the folder's index files (:data:`SEQUENCE_INDEX_FILES`, those it has) and of the
     colour and depth images of the first, middle and last frame (``files_sha256``, by path in the folder)."""
-    folder = Path(folder).resolve()
-    timestamps = np.ascontiguousarray(np.asarray(timestamps_s, np.float64))
+    folder = Path(sequence.folder).resolve()
+    timestamps = np.ascontiguousarray(np.asarray(sequence.timestamps_s, np.float64))
     files = [folder / name for name in SEQUENCE_INDEX_FILES if (folder / name).is_file()]
-    files += _sample_frame_files(folder, timestamps)
+    sampled = sorted({0, len(sequence) // 2, len(sequence) - 1}) if len(sequence) else []
+    files += [folder / Path(paths[index]).relative_to(sequence.folder)
+              for paths in (sequence.rgb_paths, sequence.depth_paths) for index in sampled]
     return {
         "folder": str(folder),
         "frames": int(len(timestamps)),
         "timestamps_sha1": hashlib.sha1(timestamps.tobytes()).hexdigest(),
-        "camera": repr(sensor),
+        "camera": repr(sequence.sensor),
         "files_sha256": {str(path.relative_to(folder)): _sha256(path) if path.is_file() else "missing"
                          for path in files},
     }

@@ -119,7 +119,7 @@ def _checkpoint(config: dict, fingerprint: dict, next_frame: int = 5) -> Checkpo
 
 def test_resume_refuses_another_config_or_sequence(synthetic_sequence_dir, tmp_path):
     sequence = open_sequence(synthetic_sequence_dir)
-    fingerprint = sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.sensor)
+    fingerprint = sequence_fingerprint(sequence)
     config = to_dict(load_config(None, ["checkpoint.every_keyframes=2"]))
     path = tmp_path / "checkpoint.npz"
     # How often a run checkpoints may change; everything else must match.
@@ -131,21 +131,21 @@ def test_resume_refuses_another_config_or_sequence(synthetic_sequence_dir, tmp_p
     shorter = open_sequence(synthetic_sequence_dir, max_frames=20)
     with pytest.raises(CheckpointError, match="another sequence"):
         check_resumable(path, _checkpoint(config, fingerprint), config,
-                        sequence_fingerprint(shorter.folder, shorter.timestamps_s, shorter.sensor))
+                        sequence_fingerprint(shorter))
     with pytest.raises(CheckpointError, match="at frame 99 of a 30-frame"):
         check_resumable(path, _checkpoint(config, fingerprint, next_frame=99), config, fingerprint)
 
 
 def test_resume_refuses_another_folder_or_content_with_the_same_timestamps(synthetic_sequence_dir, tmp_path):
     sequence = open_sequence(synthetic_sequence_dir)
-    saved = _checkpoint({}, sequence_fingerprint(sequence.folder, sequence.timestamps_s, sequence.sensor))
+    saved = _checkpoint({}, sequence_fingerprint(sequence))
     path = tmp_path / "out" / "checkpoint" / "checkpoint.npz"
 
     def refuse(folder: Path, match: str) -> None:
         other = open_sequence(folder)
         np.testing.assert_array_equal(other.timestamps_s, sequence.timestamps_s)
         with pytest.raises(CheckpointError, match=match) as refused:
-            check_resumable(path, saved, {}, sequence_fingerprint(other.folder, other.timestamps_s, other.sensor))
+            check_resumable(path, saved, {}, sequence_fingerprint(other))
         assert "\n" not in str(refused.value) and "without --resume" in str(refused.value)
 
     copy = tmp_path / "copy"
@@ -153,13 +153,13 @@ def test_resume_refuses_another_folder_or_content_with_the_same_timestamps(synth
     # A copy is another folder: the same frames, but not the run's input.
     refuse(copy, rf"another sequence \(folder {synthetic_sequence_dir.resolve()}, now {copy.resolve()}\)")
     # The same folder with other images at the same timestamps: the last frame's colour changed.
-    saved = _checkpoint({}, sequence_fingerprint(copy, sequence.timestamps_s, sequence.sensor))
+    saved = _checkpoint({}, sequence_fingerprint(open_sequence(copy)))
     last_rgb = max((copy / "rgb").iterdir())
     shutil.copyfile(min((copy / "rgb").iterdir()), last_rgb)
     refuse(copy, rf"another sequence \(other rgb/{last_rgb.name}\)")
     # ... or, with the images as they were, its ground truth (an index file) changed.
     shutil.copyfile(synthetic_sequence_dir / "rgb" / last_rgb.name, last_rgb)
-    check_resumable(path, saved, {}, sequence_fingerprint(copy, sequence.timestamps_s, sequence.sensor))
+    check_resumable(path, saved, {}, sequence_fingerprint(open_sequence(copy)))
     with open(copy / "groundtruth.txt", "a") as handle:
         handle.write("# edited\n")
     refuse(copy, r"another sequence \(other groundtruth\.txt\)")
