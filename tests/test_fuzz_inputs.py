@@ -70,7 +70,9 @@ def first_bad_index_line(path: Path, text: str) -> tuple[str, list[tuple[float, 
 
 
 def image_kind(folder: Path, path: Path) -> str:
-    """Which of the fixture's two images a listed path is, or "missing"."""
+    """Which of the fixture's two images a listed path is, "folder", or "missing"."""
+    if path.is_dir():
+        return "folder"
     if not path.is_file():
         return "missing"
     for kind in ("rgb", "depth"):
@@ -88,6 +90,7 @@ def image_kind(folder: Path, path: Path) -> str:
 @example(rgb_lines=["2.0 rgb/2.png"], depth_lines=["2.0 depth/1.png"])  # a listed colour image is missing
 @example(rgb_lines=["1.03 depth/1.png"], depth_lines=["1.03 depth/1.png", "# comment", ""])  # all readable
 @example(rgb_lines=[], depth_lines=["1.001 rgb/1.png"])  # a frame listed twice
+@example(rgb_lines=["0.0 0.0"], depth_lines=["0.0 /"])  # a folder listed as an image
 def test_index_files_give_the_listed_frames_or_an_error_naming_file_and_line(image_folder, rgb_lines, depth_lines):
     rgb_txt, depth_txt = image_folder / "rgb.txt", image_folder / "depth.txt"
     rgb_txt.write_text("\n".join(["1.0 rgb/1.png", *rgb_lines]) + "\n")
@@ -107,7 +110,9 @@ def test_index_files_give_the_listed_frames_or_an_error_naming_file_and_line(ima
                                                for read in (("rgb", pair[0]), ("depth", pair[1]))]
         for wanted, path in reads:
             kind = image_kind(image_folder, path)
-            if kind == "missing":
+            if kind == "folder":
+                expected_error = f"{path}: |listed in {wanted}.txt but is a folder, not an image"
+            elif kind == "missing":
                 expected_error = f"{path}: |image listed in {wanted}.txt does not exist"
             elif wanted == "depth" and kind == "rgb":
                 expected_error = f"{path}: |depth must be a single-channel 16-bit PNG"
