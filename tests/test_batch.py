@@ -201,11 +201,19 @@ def test_a_killed_batch_reruns_only_what_did_not_finish(sequences, tmp_path):
         assert read_metrics(out_dir / name / "metrics.json").frames == rows[name]["frames"]
 
 
+WORKER_PORTS = range(47000, 47100)
+"""The ports the two nodes' workers get (47000-47049 and 47050-47099); no other component may take one of them."""
+
+
 def _free_ports(count: int) -> list[int]:
-    sockets = [socket.socket() for _ in range(count)]
-    for handle in sockets:
+    """``count`` ports free now, none in :data:`WORKER_PORTS` (the kernel hands out ports from a range that holds
+    them, and Ray refuses a component port inside a worker range)."""
+    sockets = []
+    while len([handle for handle in sockets if handle.getsockname()[1] not in WORKER_PORTS]) < count:
+        handle = socket.socket()
         handle.bind(("127.0.0.1", 0))
-    ports = [handle.getsockname()[1] for handle in sockets]
+        sockets.append(handle)
+    ports = [handle.getsockname()[1] for handle in sockets if handle.getsockname()[1] not in WORKER_PORTS][:count]
     for handle in sockets:
         handle.close()
     return ports
@@ -250,10 +258,10 @@ def test_a_batch_runs_on_a_ray_cluster_made_with_ray_start(sequences, tmp_path):
     nodes = []
     try:
         nodes.append(_ray_start(["--head", "--include-dashboard=false", f"--node-ip-address={head_ip}", f"--port={gcs_port}",
-                                 *node_ports("47000-47049")], tmp_path / "head.log", environment))
+                                 *node_ports(f"{WORKER_PORTS[0]}-{WORKER_PORTS[49]}")], tmp_path / "head.log", environment))
         address = f"{head_ip}:{gcs_port}"
         nodes.append(_ray_start([f"--address={address}", f"--node-ip-address={worker_ip}",
-                                 *node_ports("47050-47099")], tmp_path / "worker.log", environment))
+                                 *node_ports(f"{WORKER_PORTS[50]}-{WORKER_PORTS[-1]}")], tmp_path / "worker.log", environment))
         out_dir = tmp_path / "out"
         batch = subprocess.run(_batch_command([sequences["first"], sequences["second"]], out_dir, "--address", address,
                                               "--cpus-per-run", "1"),
