@@ -366,6 +366,23 @@ def report(run_dir) -> None:
 
 
 @main.command()
+@click.argument("run_dir", type=click.Path(path_type=Path))
+@click.option("--port", type=click.IntRange(0, 65535), default=0, show_default=True,
+              help="Port on 127.0.0.1 (0: a free one).")
+def view(run_dir, port) -> None:
+    """Serve RUN_DIR's interactive splat viewer (report/viewer/) at http://127.0.0.1:PORT until Ctrl-C."""
+    from pipelines.view import ViewerServer
+
+    with ViewerServer(run_dir, port) as server:
+        click.echo(f"viewer: {server.url}")
+        click.echo("serving on 127.0.0.1 only; Ctrl-C to stop")
+        try:
+            server.serve_forever()
+        except KeyboardInterrupt:
+            click.echo("stopped")
+
+
+@main.command()
 @click.argument("name")
 @click.option("--to", "destination", type=click.Path(path_type=Path), default=Path("data"), show_default=True)
 @click.option("--base-url", default=None, help="Mirror of the TUM dataset folder (default: the TUM site).")

@@ -41,3 +41,7 @@ class ExportError(TambridgeError):
 class TrackingFailedError(TambridgeError):
     """No frame after the first could be tracked: the run has no trajectory to give (images without texture or
     depth, a wrong camera)."""
+
+
+class ViewerError(TambridgeError):
+    """A run's splat viewer cannot be served: the folder is no finished run, has no viewer, or the port is taken."""

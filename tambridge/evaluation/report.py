@@ -1,8 +1,9 @@
 """The run report: ``report/index.html`` with matplotlib PNGs beside it, readable from ``file://`` with no server.
 
 Sections appear only when their data exists: trajectory against ground truth (top view and ATE over time,
-COLMAP's Sim(3)-aligned path too when given), renders beside input frames, time per stage, Gaussian count
-over time, and the metrics table (every scalar of ``metrics.json``). Images are linked by relative paths,
+COLMAP's Sim(3)-aligned path too when given), renders beside input frames, an interactive viewer of splats.ply
+(``viewer/``, :mod:`tambridge.export.web_viewer`), time per stage, Gaussian count over time, and the metrics
+table (every scalar of ``metrics.json``). Images are linked by relative paths,
 so the folder can be moved or zipped as a whole. Every file is written atomically.
 """
 
@@ -27,6 +28,7 @@ from tambridge.evaluation.colmap import is_monocular_trajectory_file  # noqa: E4
 from tambridge.evaluation.metrics import RunMetrics, metrics_json, read_metrics  # noqa: E402
 from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory  # noqa: E402
+from tambridge.export.web_viewer import RUN_VIEWER_FOLDER, VIEWER_FILES, write_run_viewer  # noqa: E402
 from tambridge.files import atomic_path, atomic_write_text  # noqa: E402
 from tambridge.images import rgb_uint8  # noqa: E402
 from tambridge.io.tum import RgbdSequence  # noqa: E402
@@ -47,7 +49,8 @@ class RenderPair:
     rendered_rgb: np.ndarray
 
 
-REPORT_FILES = ("index.html", "trajectory.png", "renders.png", "stages.png", "gaussians.png")
+REPORT_FILES = ("index.html", "trajectory.png", "renders.png", "stages.png", "gaussians.png",
+                *(f"{RUN_VIEWER_FOLDER.name}/{name}" for name in VIEWER_FILES))
 """Every file :func:`write_report` may write into the report folder."""
 
 
@@ -58,13 +61,15 @@ def write_report(
     render_pairs: Sequence[RenderPair] = (),
     gaussian_counts: tuple[np.ndarray, np.ndarray] | None = None,
     title: str = "tambridge run",
+    web_viewer: bool = False,
 ) -> Path:
     """Write ``report_dir/index.html`` and its PNGs; returns the HTML path.
 
     ``metrics``: the run's metrics (as written to metrics.json). ``trajectory_errors``: name -> errors of
     each estimate against the same ground truth (e.g. the run's SE(3)-aligned trajectory and COLMAP's Sim(3)
     one). ``render_pairs``: at most :data:`MAX_RENDER_ROWS` are shown, evenly spread. ``gaussian_counts``:
-    frame indices (N,) and the map's Gaussian count after each (N,).
+    frame indices (N,) and the map's Gaussian count after each (N,). ``web_viewer``: embed ``report_dir/viewer/``
+    (written by :func:`~tambridge.export.web_viewer.write_run_viewer`).
     """
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
@@ -90,6 +95,8 @@ def write_report(
             "<h2>Renders</h2><p>Input frames (left) beside the Gaussian map rendered at their poses (right).</p>"
             '<img src="renders.png" alt="renders beside input frames">'
         )
+    if web_viewer:
+        sections.append(_web_viewer_section())
     if metrics.seconds_per_stage:
         _plot_stage_seconds(metrics.seconds_per_stage, metrics.frontend_seconds_per_stage, report_dir / "stages.png")
         sections.append('<h2>Time per stage</h2><img src="stages.png" alt="seconds per stage">')
@@ -125,7 +132,8 @@ def report_from_run(run_dir: Path) -> Path:
             errors[f"COLMAP ({'Sim(3)' if align == 'sim3' else 'SE(3)'})"] = evaluate_trajectory(
                 read_tum_trajectory(colmap_path), ground_truth, align
             )
-    return write_report(run_dir / "report", metrics, errors, title=f"tambridge: {metrics.sequence}")
+    return write_report(run_dir / "report", metrics, errors, title=f"tambridge: {metrics.sequence}",
+                        web_viewer=(run_dir / RUN_VIEWER_FOLDER / "index.html").is_file())
 
 
 def format_metric(value: object) -> str:
@@ -146,6 +154,18 @@ def _metrics_table(metrics: dict) -> str:
         for name, value in dotted_items(metrics).items()
     )
     return f'<table id="metrics"><tr><th>metric</th><th>value</th></tr>{rows}</table>'
+
+
+def _web_viewer_section() -> str:
+    """The interactive viewer of splats.ply, embedded and linked (it opens from file:// as from a server)."""
+    viewer = f"{RUN_VIEWER_FOLDER.name}/index.html"
+    return (
+        "<h2>Splats</h2><p>splats.ply as any 3DGS viewer shows it (no per-view exposure), from the first frame's "
+        "camera: drag to orbit, arrow keys to move, 0 to come back. "
+        f'<a href="{viewer}">Open it in its own window</a>, or serve it with <code>tambridge view RUN</code>.</p>'
+        f'<iframe id="web-viewer" src="{viewer}" title="splats.ply viewer" loading="lazy" '
+        'style="width: 100%; aspect-ratio: 4 / 3; border: 1px solid #ddd;"></iframe>'
+    )
 
 
 def _save(figure, path: Path) -> None:
@@ -230,5 +250,10 @@ def write_run_report(output_dir: Path, metrics: RunMetrics, sequence: RgbdSequen
             rendered = mapping.map.render(mapping.camera, poses[index]).rgb.detach().cpu().numpy()
             pairs.append(RenderPair(f"frame {index}", rgb_uint8(mapping.images(int(index)).rgb.cpu().numpy()), rgb_uint8(rendered)))
     counts = np.array(gaussian_counts).reshape(-1, 2)
+    # The viewer reads splats.ply and trajectory.txt as written, so it shows the world the user's files are in.
+    web_viewer = mapping is not None and (output_dir / "splats.ply").is_file()
+    if web_viewer:
+        write_run_viewer(output_dir, sequence.camera)
     write_report(output_dir / "report", metrics, trajectory_errors, pairs,
-                 (counts[:, 0], counts[:, 1]) if len(counts) else None, title=f"tambridge: {metrics.sequence}")
+                 (counts[:, 0], counts[:, 1]) if len(counts) else None, title=f"tambridge: {metrics.sequence}",
+                 web_viewer=web_viewer)

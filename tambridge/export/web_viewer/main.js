@@ -1,171 +1,37 @@
-let cameras = [
-    {
-        id: 0,
-        img_name: "00001",
-        width: 1959,
-        height: 1090,
-        position: [
-            -3.0089893469241797, -0.11086489695181866, -3.7527640949141428,
-        ],
-        rotation: [
-            [0.876134201218856, 0.06925962026449776, 0.47706599800804744],
-            [-0.04747421839895102, 0.9972110940209488, -0.057586739349882114],
-            [-0.4797239414934443, 0.027805376500959853, 0.8769787916452908],
-        ],
-        fy: 1164.6601287484507,
-        fx: 1159.5880733038064,
-    },
-    {
-        id: 1,
-        img_name: "00009",
-        width: 1959,
-        height: 1090,
-        position: [
-            -2.5199776022057296, -0.09704735754873686, -3.6247725540304545,
-        ],
-        rotation: [
-            [0.9982731285632193, -0.011928707708098955, -0.05751927260507243],
-            [0.0065061360949636325, 0.9955928229282383, -0.09355533724430458],
-            [0.058381769258182864, 0.09301955098900708, 0.9939511719154457],
-        ],
-        fy: 1164.6601287484507,
-        fx: 1159.5880733038064,
-    },
-    {
-        id: 2,
-        img_name: "00017",
-        width: 1959,
-        height: 1090,
-        position: [
-            -0.7737533667465242, -0.3364271945329695, -2.9358969417573753,
-        ],
-        rotation: [
-            [0.9998813418672372, 0.013742375651625236, -0.0069605529394208224],
-            [-0.014268370388586709, 0.996512943252834, -0.08220929105659476],
-            [0.00580653013657589, 0.08229885200307129, 0.9965907801935302],
-        ],
-        fy: 1164.6601287484507,
-        fx: 1159.5880733038064,
-    },
-    {
-        id: 3,
-        img_name: "00025",
-        width: 1959,
-        height: 1090,
-        position: [
-            1.2198221749590001, -0.2196687861401182, -2.3183162007028453,
-        ],
-        rotation: [
-            [0.9208648867765482, 0.0012010625395201253, 0.389880004297208],
-            [-0.06298204172269357, 0.987319521752825, 0.14571693239364383],
-            [-0.3847611242348369, -0.1587410451475895, 0.9092635249821667],
-        ],
-        fy: 1164.6601287484507,
-        fx: 1159.5880733038064,
-    },
-    {
-        id: 4,
-        img_name: "00033",
-        width: 1959,
-        height: 1090,
-        position: [
-            1.742387858893817, -0.13848225198886954, -2.0566370113193146,
-        ],
-        rotation: [
-            [0.24669889292141334, -0.08370189346592856, -0.9654706879349405],
-            [0.11343747891376445, 0.9919082664242816, -0.05700815184573074],
-            [0.9624300466054861, -0.09545671285663988, 0.2541976029815521],
-        ],
-        fy: 1164.6601287484507,
-        fx: 1159.5880733038064,
-    },
-    {
-        id: 5,
-        img_name: "00041",
-        width: 1959,
-        height: 1090,
-        position: [
-            3.6567309419223935, -0.16470990600750707, -1.3458085590422042,
-        ],
-        rotation: [
-            [0.2341293058324528, -0.02968330457755884, -0.9717522161434825],
-            [0.10270823606832301, 0.99469554638321, -0.005638106875665722],
-            [0.9667649592295676, -0.09848690996657204, 0.2359360976431732],
-        ],
-        fy: 1164.6601287484507,
-        fx: 1159.5880733038064,
-    },
-    {
-        id: 6,
-        img_name: "00049",
-        width: 1959,
-        height: 1090,
-        position: [
-            3.9013554243203497, -0.2597500978038105, -0.8106154188297828,
-        ],
-        rotation: [
-            [0.6717235545638952, -0.015718162115524837, -0.7406351366386528],
-            [0.055627354673906296, 0.9980224478387622, 0.029270992841185218],
-            [0.7387104058127439, -0.060861588786650656, 0.6712695459756353],
-        ],
-        fy: 1164.6601287484507,
-        fx: 1159.5880733038064,
-    },
-    {
-        id: 7,
-        img_name: "00057",
-        width: 1959,
-        height: 1090,
-        position: [4.742994605467533, -0.05591660945412069, 0.9500365976084458],
-        rotation: [
-            [-0.17042655709210375, 0.01207080756938, -0.9852964448542146],
-            [0.1165090336695526, 0.9931575292530063, -0.00798543433078162],
-            [0.9784581921120181, -0.1161568667478904, -0.1706667764862097],
-        ],
-        fy: 1164.6601287484507,
-        fx: 1159.5880733038064,
-    },
-    {
-        id: 8,
-        img_name: "00065",
-        width: 1959,
-        height: 1090,
-        position: [4.34676307626522, 0.08168160516967145, 1.0876221470355405],
-        rotation: [
-            [-0.003575447631888379, -0.044792503246552894, -0.9989899137764799],
-            [0.10770152645126597, 0.9931680875192705, -0.04491693593046672],
-            [0.9941768441149182, -0.10775333677534978, 0.0012732004866391048],
-        ],
-        fy: 1164.6601287484507,
-        fx: 1159.5880733038064,
-    },
-    {
-        id: 9,
-        img_name: "00073",
-        width: 1959,
-        height: 1090,
-        position: [3.264984351114202, 0.078974937336732, 1.0117200284114904],
-        rotation: [
-            [-0.026919994628162257, -0.1565891128261527, -0.9872968974090509],
-            [0.08444552208239385, 0.983768234577625, -0.1583319754069128],
-            [0.9960643893290491, -0.0876350978794554, -0.013259786205163005],
-        ],
-        fy: 1164.6601287484507,
-        fx: 1159.5880733038064,
-    },
-];
+// tambridge: adapted from antimatter15/splat (see README.md); every change is marked "tambridge:".
+// tambridge: the run's first camera, from splats.js (written beside this page by tambridge), replaces the demo
+// scene's cameras: an INRIA cameras.json entry (rotation = world_from_camera rotation, position = camera centre)
+// with the principal point (cx, cy) added, pixel centres at integer coordinates (OpenCV).
+const tambridgeView = window.TAMBRIDGE_VIEW;
+let cameras = tambridgeView
+    ? [tambridgeView.camera]
+    : [{ id: 0, img_name: "none", width: 640, height: 480, position: [0, 0, 0],
+         rotation: [[1, 0, 0], [0, 1, 0], [0, 0, 1]], fx: 525, fy: 525, cx: 319.5, cy: 239.5 }];
 
 let camera = cameras[0];
 
-function getProjectionMatrix(fx, fy, width, height) {
-    const znear = 0.2;
+// tambridge: the principal point (cx, cy) is honoured (the original assumed the image centre); a pixel's centre
+// at integer (u, v) lies at window coordinate u + 0.5, hence the half pixel. znear is 1 cm, as the maps are rooms.
+function getProjectionMatrix(fx, fy, cx, cy, width, height) {
+    const znear = 0.01;
     const zfar = 200;
     return [
         [(2 * fx) / width, 0, 0, 0],
         [0, -(2 * fy) / height, 0, 0],
-        [0, 0, zfar / (zfar - znear), 1],
+        [(2 * (cx + 0.5)) / width - 1, 1 - (2 * (cy + 0.5)) / height, zfar / (zfar - znear), 1],
         [0, 0, -(zfar * znear) / (zfar - znear), 0],
     ].flat();
+}
+
+// tambridge: the camera's image fitted (centred, aspect kept) into a window of width x height CSS pixels.
+function fitCamera(camera, width, height) {
+    const s = Math.min(width / camera.width, height / camera.height);
+    return {
+        fx: s * camera.fx,
+        fy: s * camera.fy,
+        cx: (width - s * camera.width) / 2 + s * (camera.cx + 0.5) - 0.5,
+        cy: (height - s * camera.height) / 2 + s * (camera.cy + 0.5) - 0.5,
+    };
 }
 
 function getViewMatrix(camera) {
@@ -736,34 +602,31 @@ let defaultViewMatrix = [
     0.03, 6.55, 1,
 ];
 let viewMatrix = defaultViewMatrix;
+// tambridge: what a test reads to know a frame is complete (worker sort finished for the view drawn).
+const tambridgeState = { sortedView: null, sortedFrames: 0, vertexCount: 0 };
+window.tambridgeViewer = tambridgeState;
 async function main() {
-    let carousel = true;
-    const params = new URLSearchParams(location.search);
+    // tambridge: no demo animation; the view starts at the run's first camera.
+    let carousel = false;
+    viewMatrix = getViewMatrix(camera);
     try {
         viewMatrix = JSON.parse(decodeURIComponent(location.hash.slice(1)));
         carousel = false;
     } catch (err) {}
-    const url = new URL(
-        // "nike.splat",
-        // location.href,
-        params.get("url") || "train.splat",
-        "https://huggingface.co/cakewalk/splat-data/resolve/main/",
-    );
-    const req = await fetch(url, {
-        mode: "cors", // no-cors, *cors, same-origin
-        credentials: "omit", // include, *same-origin, omit
-    });
-    console.log(req);
-    if (req.status != 200)
-        throw new Error(req.status + " Unable to load " + req.url);
-
+    // tambridge: no network: the run's .ply comes in splats.js (base64), which a <script> tag loads from file://
+    // as from a server (file:// pages may not fetch() a local file); another .ply can be dropped on the page.
     const rowLength = 3 * 4 + 3 * 4 + 4 + 4;
-    const reader = req.body.getReader();
-    let splatData = new Uint8Array(req.headers.get("content-length"));
+    const plyBytes = tambridgeView
+        ? Uint8Array.from(atob(tambridgeView.ply_base64), (c) => c.charCodeAt(0))
+        : null;
+    if (!plyBytes)
+        document.getElementById("message").innerText =
+            "no splats.js beside this page: drop a 3DGS .ply file here";
+    let splatData = new Uint8Array(0);
 
+    // tambridge: 17 float32 properties a Gaussian in tambridge's .ply (about 68 bytes each).
     const downsample =
-        splatData.length / rowLength > 500000 ? 1 : 1 / devicePixelRatio;
-    console.log(splatData.length / rowLength, downsample);
+        (plyBytes ? plyBytes.length / 68 : 0) > 500000 ? 1 : 1 / devicePixelRatio;
 
     const worker = new Worker(
         URL.createObjectURL(
@@ -845,11 +708,15 @@ async function main() {
     gl.vertexAttribDivisor(a_index, 1);
 
     const resize = () => {
-        gl.uniform2fv(u_focal, new Float32Array([camera.fx, camera.fy]));
+        // tambridge: the camera's image fitted into the window, principal point included.
+        const fitted = fitCamera(camera, innerWidth, innerHeight);
+        gl.uniform2fv(u_focal, new Float32Array([fitted.fx, fitted.fy]));
 
         projectionMatrix = getProjectionMatrix(
-            camera.fx,
-            camera.fy,
+            fitted.fx,
+            fitted.fy,
+            fitted.cx,
+            fitted.cy,
             innerWidth,
             innerHeight,
         );
@@ -914,6 +781,8 @@ async function main() {
             gl.bindBuffer(gl.ARRAY_BUFFER, indexBuffer);
             gl.bufferData(gl.ARRAY_BUFFER, depthIndex, gl.DYNAMIC_DRAW);
             vertexCount = e.data.vertexCount;
+            // tambridge: the view matrix the drawn order was sorted for, for tests waiting on a finished frame.
+            tambridgeState.sortedView = viewProj;
         }
     };
 
@@ -924,7 +793,8 @@ async function main() {
         // if (document.activeElement != document.body) return;
         carousel = false;
         if (!activeKeys.includes(e.code)) activeKeys.push(e.code);
-        if (/\d/.test(e.key)) {
+        // tambridge: only the cameras there are (the run gives one).
+        if (/\d/.test(e.key) && cameras[parseInt(e.key)]) {
             currentCameraIndex = parseInt(e.key);
             camera = cameras[currentCameraIndex];
             viewMatrix = getViewMatrix(camera);
@@ -1360,6 +1230,12 @@ async function main() {
             gl.uniformMatrix4fv(u_view, false, actualViewMatrix);
             gl.clear(gl.COLOR_BUFFER_BIT);
             gl.drawArraysInstanced(gl.TRIANGLE_FAN, 0, 4, vertexCount);
+            // tambridge: frames drawn with every Gaussian, sorted for the view drawn (tests wait on this).
+            // (to rounding: the view matrix is inverted and inverted back every frame)
+            const sorted = tambridgeState.sortedView !== null &&
+                tambridgeState.sortedView.every((value, i) => Math.abs(value - viewProj[i]) < 1e-9);
+            tambridgeState.sortedFrames = sorted ? tambridgeState.sortedFrames + 1 : 0;
+            tambridgeState.vertexCount = vertexCount;
         } else {
             gl.clear(gl.COLOR_BUFFER_BIT);
             document.getElementById("spinner").style.display = "";
@@ -1392,27 +1268,27 @@ async function main() {
         if (/\.json$/i.test(file.name)) {
             fr.onload = () => {
                 cameras = JSON.parse(fr.result);
-                viewMatrix = getViewMatrix(cameras[0]);
-                projectionMatrix = getProjectionMatrix(
-                    camera.fx / downsample,
-                    camera.fy / downsample,
-                    canvas.width,
-                    canvas.height,
-                );
-                gl.uniformMatrix4fv(u_projection, false, projectionMatrix);
+                // tambridge: cameras.json entries without a principal point have it at the image centre.
+                for (const c of cameras) {
+                    if (c.cx === undefined) c.cx = (c.width - 1) / 2;
+                    if (c.cy === undefined) c.cy = (c.height - 1) / 2;
+                }
+                camera = cameras[0];
+                viewMatrix = getViewMatrix(camera);
+                resize();
 
                 console.log("Loaded Cameras");
             };
             fr.readAsText(file);
         } else {
-            stopLoading = true;
             fr.onload = () => {
                 splatData = new Uint8Array(fr.result);
                 console.log("Loaded", Math.floor(splatData.length / rowLength));
 
                 if (isPly(splatData)) {
                     // ply file magic header means it should be handled differently
-                    worker.postMessage({ ply: splatData.buffer, save: true });
+                    // tambridge: shown only, not also downloaded as a .splat.
+                    worker.postMessage({ ply: splatData.buffer, save: false });
                 } else {
                     worker.postMessage({
                         buffer: splatData.buffer,
@@ -1444,38 +1320,8 @@ async function main() {
         selectFile(e.dataTransfer.files[0]);
     });
 
-    let bytesRead = 0;
-    let lastVertexCount = -1;
-    let stopLoading = false;
-
-    while (true) {
-        const { done, value } = await reader.read();
-        if (done || stopLoading) break;
-
-        splatData.set(value, bytesRead);
-        bytesRead += value.length;
-
-        if (vertexCount > lastVertexCount) {
-            if (!isPly(splatData)) {
-                worker.postMessage({
-                    buffer: splatData.buffer,
-                    vertexCount: Math.floor(bytesRead / rowLength),
-                });
-            }
-            lastVertexCount = vertexCount;
-        }
-    }
-    if (!stopLoading) {
-        if (isPly(splatData)) {
-            // ply file magic header means it should be handled differently
-            worker.postMessage({ ply: splatData.buffer, save: false });
-        } else {
-            worker.postMessage({
-                buffer: splatData.buffer,
-                vertexCount: Math.floor(bytesRead / rowLength),
-            });
-        }
-    }
+    // tambridge: the run's .ply, parsed by the viewer's own .ply reader in its worker.
+    if (plyBytes) worker.postMessage({ ply: plyBytes.buffer, save: false });
 }
 
 main().catch((err) => {

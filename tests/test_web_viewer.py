@@ -1,0 +1,245 @@
+"""The run's splat viewer (antimatter15/splat, vendored) shows what tambridge's renderer shows: a headless-Chromium
+screenshot at the run's first pose, opened from file:// and from `tambridge view`'s server, against the rasteriser's
+render of the splats loaded back from the .ply (no exposure)."""
+
+import dataclasses
+import io
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from tambridge.camera import Camera
+from tambridge.errors import ViewerError
+from tambridge.evaluation.metrics import write_metrics
+from tambridge.evaluation.rendering import psnr_db
+from tambridge.export.splats import load_ply, save_ply
+from tambridge.export.web_viewer import RUN_VIEWER_FOLDER, VIEWER_FILES, write_run_viewer
+from tambridge.gaussians.model import GaussianTensors
+from tambridge.gaussians.rasterizer import render
+from tambridge.geometry import exp_se3
+from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render as ray_cast
+from tambridge.trajectory import Trajectory, write_tum_trajectory
+from tests.test_report import CHROMIUM_FLAGS, _chromium_paths, _metrics
+
+ROOT = Path(__file__).resolve().parent.parent
+
+WEBGL_FLAGS = ("--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--force-device-scale-factor=1")
+"""WebGL 2 in headless Chromium without a GPU: ANGLE on SwiftShader, Chromium's CPU implementation."""
+
+CAMERA = default_camera(160, 120)
+"""The viewer's camera: the run's frames' camera."""
+
+VIEWER_MIN_PSNR_DB = 35.0
+"""Screenshot against the rasteriser. The two differ by design in small ways: the viewer quantises colour and
+opacity to 8 bits and covariances to half floats, projects each splat with the full EWA Jacobian (an ellipse off
+the image centre, where the rasteriser keeps a circle of radius f r / z), cuts a splat off at 2.8 instead of 3
+radii, does not clamp alpha at 0.99 nor stop at the transmittance floor, and sorts by a 16-bit depth key. The bound
+is set above what the smallest error of a wrong view below scores, with a margin for the viewer's own differences."""
+WRONG_MAX_PSNR_DB = 34.0
+"""The screenshot against a render that is wrong by a mirror, an up-down flip, the inverse pose, a degree of yaw,
+2 cm sideways or half a pixel of principal point (the pixel-centre convention) must score below this: the
+agreement is about the pose and the projection, not about the map's blur."""
+
+
+def _room_map() -> tuple[GaussianTensors, np.ndarray]:
+    """Gaussians on the synthetic room's surfaces as an 80x60 depth camera at a loop pose sees them (one per pixel,
+    a pixel's footprint in radius), and that pose: a tilted, moved camera, so a transposed or inverted pose shows."""
+    pose = loop_path(30)[7]
+    camera = default_camera(80, 60)
+    rgb, depth_m = ray_cast(make_room_scene(0), camera, pose)
+    columns, rows = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
+    points_camera = camera.backproject(np.stack([columns, rows], axis=-1), depth_m.astype(np.float64)).reshape(-1, 3)
+    seen = depth_m.reshape(-1) > 0
+    points_world = points_camera[seen] @ pose[:3, :3].T + pose[:3, 3]
+    radii_m = depth_m.reshape(-1)[seen] / camera.fx * 0.8
+    gaussians = GaussianTensors(
+        means_m=torch.tensor(points_world, dtype=torch.float32),
+        rgb=torch.tensor(rgb.reshape(-1, 3)[seen], dtype=torch.float32),
+        log_radii_m=torch.tensor(np.log(radii_m), dtype=torch.float32),
+        opacity_logits=torch.full((int(seen.sum()),), 3.0),
+    )
+    return gaussians, pose
+
+
+@pytest.fixture(scope="module")
+def splat_run(tmp_path_factory) -> Path:
+    """A finished run's folder as reconstruct leaves it, as far as the viewer reads it: splats.ply, trajectory.txt
+    (first pose the map's), metrics.json and report/viewer/."""
+    run_dir = tmp_path_factory.mktemp("run")
+    gaussians, pose = _room_map()
+    save_ply(run_dir / "splats.ply", gaussians)
+    poses = np.stack([pose, pose @ exp_se3(np.array([0.05, 0.0, 0.0, 0.0, 0.1, 0.0]))])
+    write_tum_trajectory(run_dir / "trajectory.txt", Trajectory(np.array([0.0, 0.1]), poses))
+    write_metrics(run_dir / "metrics.json", _metrics())
+    write_run_viewer(run_dir, CAMERA)
+    return run_dir
+
+
+@pytest.fixture(scope="module")
+def webgl_browser(tmp_path_factory):
+    """Headless Chromium with WebGL on SwiftShader, driven through selenium with the system chromedriver (offline)."""
+    browser_path, driver_path = _chromium_paths()
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = browser_path
+    for flag in (*(flag for flag in CHROMIUM_FLAGS if flag != "--disable-gpu"), *WEBGL_FLAGS):
+        options.add_argument(flag)
+    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
+    driver = webdriver.Chrome(service=Service(executable_path=driver_path), options=options)
+    yield driver
+    driver.quit()
+
+
+def _screenshot(driver, url: str, width: int, height: int) -> np.ndarray:
+    """The viewer's canvas at ``url`` in a ``width x height`` CSS-pixel viewport, as (H, W, 3) floats in [0, 1], once
+    every Gaussian is drawn in the order sorted for the view shown (the overlays hidden)."""
+    from PIL import Image
+    from selenium.webdriver.common.by import By
+
+    driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride",
+                           {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False})
+    driver.get(url)
+    deadline = time.monotonic() + 60.0
+    while (driver.execute_script("return window.tambridgeViewer && window.tambridgeViewer.sortedFrames") or 0) < 2:
+        message = driver.execute_script("return document.getElementById('message').innerText")
+        assert time.monotonic() < deadline and not message, f"viewer did not draw: {message!r}"
+        time.sleep(0.1)
+    driver.execute_script("for (const id of ['info', 'quality', 'caminfo', 'progress']) "
+                          "document.getElementById(id).style.display = 'none';")
+    driver.execute_async_script("requestAnimationFrame(() => requestAnimationFrame(arguments[0]));")
+    png = driver.find_element(By.ID, "canvas").screenshot_as_png
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), np.float64) / 255.0
+
+
+def _ours(run_dir: Path, camera: Camera, world_from_camera: np.ndarray) -> np.ndarray:
+    """tambridge's render of the run's splats.ply, loaded back from the file, over black as the viewer's page."""
+    return render(load_ply(run_dir / "splats.ply"), camera, world_from_camera).rgb.numpy().astype(np.float64)
+
+
+def _first_pose(run_dir: Path) -> np.ndarray:
+    from tambridge.trajectory import read_tum_trajectory
+
+    return read_tum_trajectory(run_dir / "trajectory.txt").world_from_camera[0]
+
+
+def _assert_agrees_and_beats_wrong_views(shown: np.ndarray, run_dir: Path, camera: Camera) -> None:
+    pose = _first_pose(run_dir)
+    ours = _ours(run_dir, camera, pose)
+    assert shown.shape == ours.shape
+    agreement = psnr_db(shown, ours)
+    shift_px = 0.5 * camera.width / CAMERA.width  # half a pixel of the frames' camera, in the window's pixels
+    wrong = {
+        "mirrored": psnr_db(shown, np.fliplr(ours).copy()),
+        "upside down": psnr_db(shown, np.flipud(ours).copy()),
+        "inverse pose": psnr_db(shown, _ours(run_dir, camera, np.linalg.inv(pose))),
+        "1 degree yaw": psnr_db(shown, _ours(run_dir, camera, pose @ exp_se3(np.r_[0, 0, 0, 0, np.deg2rad(1.0), 0]))),
+        "2 cm right": psnr_db(shown, _ours(run_dir, camera, pose @ exp_se3(np.r_[0.02, 0, 0, 0, 0, 0]))),
+        "half a pixel": psnr_db(shown, _ours(run_dir, dataclasses.replace(camera, cx=camera.cx + shift_px,
+                                                                          cy=camera.cy + shift_px), pose)),
+    }
+    print(f"viewer against the rasteriser: {agreement:.2f} dB; wrong views: {wrong}")
+    assert agreement > VIEWER_MIN_PSNR_DB, (agreement, wrong)
+    assert max(wrong.values()) < WRONG_MAX_PSNR_DB, (agreement, wrong)
+
+
+@pytest.mark.slow
+def test_viewer_from_the_file_system_shows_the_renderers_image_at_the_first_pose(webgl_browser, splat_run):
+    index = splat_run / RUN_VIEWER_FOLDER / "index.html"
+    shown = _screenshot(webgl_browser, index.resolve().as_uri(), CAMERA.width, CAMERA.height)
+    _assert_agrees_and_beats_wrong_views(shown, splat_run, CAMERA)
+    assert webgl_browser.execute_script("return window.tambridgeViewer.vertexCount") == len(load_ply(splat_run / "splats.ply"))
+
+
+@pytest.mark.slow
+def test_tambridge_view_serves_the_viewer_on_localhost_fitted_to_the_window(webgl_browser, splat_run):
+    """Through the server, in a window twice the camera's size: the image is the camera's, scaled."""
+    from pipelines.view import ViewerServer
+
+    with ViewerServer(splat_run) as server:
+        thread = threading.Thread(target=server.serve_forever, daemon=True)
+        thread.start()
+        try:
+            assert server.server_address[0] == "127.0.0.1" and server.url.startswith("http://127.0.0.1:")
+            shown = _screenshot(webgl_browser, server.url, 2 * CAMERA.width, 2 * CAMERA.height)
+            with pytest.raises(urllib.error.HTTPError, match="404"):  # the report folder only, not the run's
+                urllib.request.urlopen(server.url.replace("viewer/index.html", "../metrics.json"))
+        finally:
+            server.shutdown()
+            thread.join()
+    _assert_agrees_and_beats_wrong_views(shown, splat_run, CAMERA.scaled(2.0))
+
+
+@pytest.mark.slow
+def test_a_run_report_embeds_a_working_viewer_of_its_splats(webgl_browser, synthetic_sequence_dir, tmp_path):
+    from pipelines.reconstruct import RUN_FILES, reconstruct
+    from tambridge.config import load_config
+
+    config = load_config(None, ["input.max_frames=4", "mapper.iterations=2", "mesh.enabled=false"])
+    reconstruct(synthetic_sequence_dir, tmp_path / "run", config, progress=False)
+    assert {f"{RUN_VIEWER_FOLDER.as_posix()}/{name}" for name in VIEWER_FILES} <= set(RUN_FILES)
+    webgl_browser.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
+    webgl_browser.get((tmp_path / "run" / "report" / "index.html").resolve().as_uri())
+    headings = webgl_browser.execute_script("return Array.from(document.querySelectorAll('h2')).map(h => h.textContent)")
+    assert "Splats" in headings
+    # The iframe loads lazily (a report opens without decoding the splats): bring it into view.
+    webgl_browser.execute_script("document.getElementById('web-viewer').scrollIntoView()")
+    webgl_browser.switch_to.frame("web-viewer")
+    try:
+        deadline = time.monotonic() + 60.0
+        while (webgl_browser.execute_script("return window.tambridgeViewer.sortedFrames") or 0) < 1:
+            assert time.monotonic() < deadline, "the embedded viewer did not draw"
+            time.sleep(0.1)
+        assert webgl_browser.execute_script("return window.tambridgeViewer.vertexCount") == \
+            len(load_ply(tmp_path / "run" / "splats.ply"))
+    finally:
+        webgl_browser.switch_to.default_content()
+
+
+def test_view_refuses_what_is_no_finished_runs_viewer_in_one_line(tmp_path, splat_run):
+    from cli import main
+    from pipelines.view import ViewerServer
+
+    (tmp_path / "unfinished").mkdir()
+    (tmp_path / "no-map").mkdir()
+    write_metrics(tmp_path / "no-map" / "metrics.json", _metrics())
+    for folder, message in ((tmp_path / "none", "not a folder"), (tmp_path / "unfinished", "holds no finished run"),
+                            (tmp_path / "no-map", "report/viewer/index.html: not found")):
+        with pytest.raises(ViewerError, match=message):
+            ViewerServer(folder)
+        result = CliRunner().invoke(main, ["view", str(folder)])
+        assert result.exit_code == 2 and message in result.output and len(result.output.strip().splitlines()) == 1
+    with ViewerServer(splat_run) as taken:
+        with pytest.raises(ViewerError, match=f"127.0.0.1:{taken.server_address[1]}: cannot listen there"):
+            ViewerServer(splat_run, taken.server_address[1])
+
+
+@pytest.mark.slow
+def test_view_command_prints_the_url_serves_the_page_and_stops_on_ctrl_c(splat_run):
+    process = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "view", str(splat_run)], cwd=ROOT,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "PYTHONPATH": str(ROOT)})
+    try:
+        url = process.stdout.readline().strip().removeprefix("viewer: ")
+        assert url.startswith("http://127.0.0.1:") and url.endswith("/viewer/index.html"), url
+        with urllib.request.urlopen(url) as response:
+            assert b'<script src="splats.js"></script>' in response.read()
+        with urllib.request.urlopen(url.replace("index.html", "splats.js")) as response:
+            assert response.read().startswith(b"window.TAMBRIDGE_VIEW = ")
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=30)
+    finally:
+        process.kill()
+    assert process.returncode == 0 and "stopped" in stdout and "Traceback" not in stderr, (stdout, stderr)
