@@ -40,7 +40,7 @@ def check_run_viewer(run_dir: Path) -> Path:
 class _QuietHandler(http.server.SimpleHTTPRequestHandler):
     """Static files; requests go to the log at debug level instead of stderr."""
 
-    def log_message(self, format, *args) -> None:  # noqa: A002 (the base class's signature)
+    def log_message(self, format, *args) -> None:  # the base class names its argument format
         logger.debug("%s %s", self.address_string(), format % args)
 
 

@@ -2,8 +2,8 @@
 screenshot at the run's first pose, opened from file:// and from `tambridge view`'s server, against the rasteriser's
 render of the splats loaded back from the .ply (no exposure)."""
 
+import base64
 import dataclasses
-import io
 import os
 import signal
 import subprocess
@@ -19,23 +19,20 @@ import pytest
 import torch
 from click.testing import CliRunner
 
+from benchmarks.web_viewer import rasteriser_view, viewer_screenshot, webgl_chromium
 from tambridge.camera import Camera
 from tambridge.errors import ViewerError
 from tambridge.evaluation.metrics import write_metrics
 from tambridge.evaluation.rendering import psnr_db
 from tambridge.export.splats import load_ply, save_ply
-from tambridge.export.web_viewer import RUN_VIEWER_FOLDER, VIEWER_FILES, write_run_viewer
+from tambridge.export.web_viewer import RUN_VIEWER_FOLDER, VIEWER_FILES, read_viewer_view, write_run_viewer
 from tambridge.gaussians.model import GaussianTensors
-from tambridge.gaussians.rasterizer import render
 from tambridge.geometry import exp_se3
 from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render as ray_cast
-from tambridge.trajectory import Trajectory, write_tum_trajectory
-from tests.test_report import CHROMIUM_FLAGS, _chromium_paths, _metrics
+from tambridge.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
+from tests.test_report import _chromium_paths, _metrics
 
 ROOT = Path(__file__).resolve().parent.parent
-
-WEBGL_FLAGS = ("--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--force-device-scale-factor=1")
-"""WebGL 2 in headless Chromium without a GPU: ANGLE on SwiftShader, Chromium's CPU implementation."""
 
 CAMERA = default_camera(160, 120)
 """The viewer's camera: the run's frames' camera."""
@@ -88,51 +85,26 @@ def splat_run(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def webgl_browser(tmp_path_factory):
-    """Headless Chromium with WebGL on SwiftShader, driven through selenium with the system chromedriver (offline)."""
-    browser_path, driver_path = _chromium_paths()
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = browser_path
-    for flag in (*(flag for flag in CHROMIUM_FLAGS if flag != "--disable-gpu"), *WEBGL_FLAGS):
-        options.add_argument(flag)
-    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
-    driver = webdriver.Chrome(service=Service(executable_path=driver_path), options=options)
+    """Headless Chromium with WebGL on SwiftShader (skipped without chromium and chromedriver, as the report test)."""
+    driver = webgl_chromium(*_chromium_paths(), tmp_path_factory.mktemp("chromium-profile"))
     yield driver
     driver.quit()
 
 
-def _screenshot(driver, url: str, width: int, height: int) -> np.ndarray:
-    """The viewer's canvas at ``url`` in a ``width x height`` CSS-pixel viewport, as (H, W, 3) floats in [0, 1], once
-    every Gaussian is drawn in the order sorted for the view shown (the overlays hidden)."""
-    from PIL import Image
-    from selenium.webdriver.common.by import By
-
-    driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride",
-                           {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False})
-    driver.get(url)
-    deadline = time.monotonic() + 60.0
-    while (driver.execute_script("return window.tambridgeViewer && window.tambridgeViewer.sortedFrames") or 0) < 2:
-        message = driver.execute_script("return document.getElementById('message').innerText")
-        assert time.monotonic() < deadline and not message, f"viewer did not draw: {message!r}"
-        time.sleep(0.1)
-    driver.execute_script("for (const id of ['info', 'quality', 'caminfo', 'progress']) "
-                          "document.getElementById(id).style.display = 'none';")
-    driver.execute_async_script("requestAnimationFrame(() => requestAnimationFrame(arguments[0]));")
-    png = driver.find_element(By.ID, "canvas").screenshot_as_png
-    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), np.float64) / 255.0
-
-
 def _ours(run_dir: Path, camera: Camera, world_from_camera: np.ndarray) -> np.ndarray:
-    """tambridge's render of the run's splats.ply, loaded back from the file, over black as the viewer's page."""
-    return render(load_ply(run_dir / "splats.ply"), camera, world_from_camera).rgb.numpy().astype(np.float64)
+    return rasteriser_view(run_dir / "splats.ply", camera, world_from_camera)
 
 
 def _first_pose(run_dir: Path) -> np.ndarray:
-    from tambridge.trajectory import read_tum_trajectory
-
     return read_tum_trajectory(run_dir / "trajectory.txt").world_from_camera[0]
+
+
+def test_the_viewer_starts_at_the_runs_first_pose_and_camera(splat_run):
+    camera, world_from_camera = read_viewer_view(splat_run / RUN_VIEWER_FOLDER)
+    assert camera == dataclasses.replace(CAMERA, distortion=camera.distortion)
+    np.testing.assert_allclose(world_from_camera, _first_pose(splat_run), atol=1e-12)
+    data = (splat_run / RUN_VIEWER_FOLDER / "splats.js").read_text()
+    assert base64.b64decode(data.split('ply_base64 = "')[1].split('"')[0]) == (splat_run / "splats.ply").read_bytes()
 
 
 def _assert_agrees_and_beats_wrong_views(shown: np.ndarray, run_dir: Path, camera: Camera) -> None:
@@ -158,7 +130,7 @@ def _assert_agrees_and_beats_wrong_views(shown: np.ndarray, run_dir: Path, camer
 @pytest.mark.slow
 def test_viewer_from_the_file_system_shows_the_renderers_image_at_the_first_pose(webgl_browser, splat_run):
     index = splat_run / RUN_VIEWER_FOLDER / "index.html"
-    shown = _screenshot(webgl_browser, index.resolve().as_uri(), CAMERA.width, CAMERA.height)
+    shown = viewer_screenshot(webgl_browser, index.resolve().as_uri(), CAMERA.width, CAMERA.height)
     _assert_agrees_and_beats_wrong_views(shown, splat_run, CAMERA)
     assert webgl_browser.execute_script("return window.tambridgeViewer.vertexCount") == len(load_ply(splat_run / "splats.ply"))
 
@@ -173,7 +145,7 @@ def test_tambridge_view_serves_the_viewer_on_localhost_fitted_to_the_window(webg
         thread.start()
         try:
             assert server.server_address[0] == "127.0.0.1" and server.url.startswith("http://127.0.0.1:")
-            shown = _screenshot(webgl_browser, server.url, 2 * CAMERA.width, 2 * CAMERA.height)
+            shown = viewer_screenshot(webgl_browser, server.url, 2 * CAMERA.width, 2 * CAMERA.height)
             with pytest.raises(urllib.error.HTTPError, match="404"):  # the report folder only, not the run's
                 urllib.request.urlopen(server.url.replace("viewer/index.html", "../metrics.json"))
         finally:
@@ -221,9 +193,9 @@ def test_view_refuses_what_is_no_finished_runs_viewer_in_one_line(tmp_path, spla
             ViewerServer(folder)
         result = CliRunner().invoke(main, ["view", str(folder)])
         assert result.exit_code == 2 and message in result.output and len(result.output.strip().splitlines()) == 1
-    with ViewerServer(splat_run) as taken:
-        with pytest.raises(ViewerError, match=f"127.0.0.1:{taken.server_address[1]}: cannot listen there"):
-            ViewerServer(splat_run, taken.server_address[1])
+    with ViewerServer(splat_run) as taken, pytest.raises(ViewerError, match=f"127.0.0.1:{taken.server_address[1]}: "
+                                                                             "cannot listen there"):
+        ViewerServer(splat_run, taken.server_address[1])
 
 
 @pytest.mark.slow

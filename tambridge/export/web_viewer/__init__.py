@@ -44,6 +44,16 @@ def viewer_camera(camera: Camera, world_from_camera: np.ndarray) -> dict:
     }  # fmt: skip
 
 
+def read_viewer_view(folder: Path) -> tuple[Camera, np.ndarray]:
+    """The camera and (4, 4) world_from_camera a viewer folder written by :func:`write_web_viewer` starts at."""
+    first_line = (Path(folder) / DATA_NAME).open(encoding="ascii").readline()
+    entry = json.loads(first_line.removeprefix("window.TAMBRIDGE_VIEW = ").rstrip().removesuffix(";"))["camera"]
+    camera = Camera(entry["width"], entry["height"], entry["fx"], entry["fy"], entry["cx"], entry["cy"])
+    world_from_camera = np.eye(4)
+    world_from_camera[:3, :3], world_from_camera[:3, 3] = entry["rotation"], entry["position"]
+    return camera, world_from_camera
+
+
 def write_web_viewer(folder: Path, splats_ply: Path, camera: Camera, world_from_camera: np.ndarray) -> Path:
     """Write the viewer of ``splats_ply`` into ``folder`` (created), starting at ``world_from_camera`` (4, 4) seen
     by ``camera`` (its distortion is ignored, as the renderer ignores it); returns ``folder/index.html``.
