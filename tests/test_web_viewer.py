@@ -107,6 +107,15 @@ def test_the_viewer_starts_at_the_runs_first_pose_and_camera(splat_run):
     assert base64.b64decode(data.split('ply_base64 = "')[1].split('"')[0]) == (splat_run / "splats.ply").read_bytes()
 
 
+def test_tambridge_report_keeps_the_viewer_the_run_wrote(splat_run, tmp_path):
+    from tambridge.evaluation.report import report_from_run
+
+    assert 'src="viewer/index.html"' in report_from_run(splat_run).read_text()
+    write_metrics(tmp_path / "metrics.json", _metrics())
+    write_tum_trajectory(tmp_path / "trajectory.txt", read_tum_trajectory(splat_run / "trajectory.txt"))
+    assert "viewer/index.html" not in report_from_run(tmp_path).read_text()
+
+
 def _assert_agrees_and_beats_wrong_views(shown: np.ndarray, run_dir: Path, camera: Camera) -> None:
     pose = _first_pose(run_dir)
     ours = _ours(run_dir, camera, pose)

@@ -164,7 +164,7 @@ def _web_viewer_section() -> str:
         "camera: drag to orbit, arrow keys to move, 0 to come back. "
         f'<a href="{viewer}">Open it in its own window</a>, or serve it with <code>tambridge view RUN</code>.</p>'
         f'<iframe id="web-viewer" src="{viewer}" title="splats.ply viewer" loading="lazy" '
-        'style="width: 100%; aspect-ratio: 4 / 3; border: 1px solid #ddd;"></iframe>'
+        'style="display: block; box-sizing: border-box; width: 100%; aspect-ratio: 4 / 3; border: 1px solid #ddd;"></iframe>'
     )
 
 
