@@ -1,7 +1,7 @@
 """The run report: ``report/index.html`` with matplotlib PNGs beside it, readable from ``file://`` with no server.
 
-Sections appear only when their data exists: trajectory against ground truth (top view and ATE over time,
-COLMAP's Sim(3)-aligned path too when given), renders beside input frames, time per stage, Gaussian count
+Sections appear only when their data exists: trajectory against ground truth (top view and ATE over time with
+the worst 2-second segment shaded and named, COLMAP's Sim(3)-aligned path too when given), renders beside input frames, time per stage, Gaussian count
 over time, and the metrics table (every scalar of ``metrics.json``). Images are linked by relative paths,
 so the folder can be moved or zipped as a whole. Every file is written atomically.
 """
