@@ -1,8 +1,13 @@
 """Frontends side by side on real data: ORB without and with loop closure + global BA, the Open3D keyframe
 frontend, and plain frame-to-frame Open3D RGB-D odometry (the peer).
 
-    python benchmarks/frontend.py                                 # both sequences, full length
+    python benchmarks/frontend.py                                 # every sequence, full length
     python benchmarks/frontend.py --max-frames 200 --methods orb  # a subset
+    python benchmarks/frontend.py --data /work/data --sequences rgbd_dataset_freiburg1_xyz   # one sequence
+
+Sequences are named by folder and looked for in the ``--data`` folders (default: ``shared/data`` and ``data``
+beside the repository); one that is missing stops the run at once with a line saying how to get it. A run on a
+subset replaces its (method, sequence) rows in benchmarks/results/frontend.json and keeps the others.
 
 Each (method, sequence) runs in its own process. frames/s counts only the time inside ``track`` and
 ``finish`` (reading and decoding images is excluded and reported apart as ``read s``); ``CPU frames/s`` divides
@@ -17,6 +22,7 @@ the rows to benchmarks/results/frontend.json. 7-Scenes is read with colour resam
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import os
 import platform
@@ -29,10 +35,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.sequences import camera_file_for  # noqa: E402
+from benchmarks.sequences import DATA_FOLDERS, FR1_XYZ, FR1_XYZ_FIRST37, KITCHEN, camera_file_for, find_sequence, merge_rows  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
-SEQUENCES = ("7scenes_redkitchen_0-699", "tum_fr1_xyz_first37")
+SEQUENCES = (FR1_XYZ, KITCHEN, FR1_XYZ_FIRST37)
 METHODS = {
     "orb": "ORB, no loop closure",
     "orb_loop": "ORB + loop closure + global BA",
@@ -131,8 +137,9 @@ def format_table(rows: list[dict]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
-    parser.add_argument("--sequences", nargs="*", default=list(SEQUENCES))
+    parser.add_argument("--data", type=Path, nargs="*", default=list(DATA_FOLDERS),
+                        help="folders holding the sequences by their folder names")
+    parser.add_argument("--sequences", nargs="*", default=list(SEQUENCES), help="folder names (or paths)")
     parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
     parser.add_argument("--max-frames", type=int)
     parser.add_argument("--unregistered-colour", action="store_true",
@@ -144,17 +151,24 @@ def main() -> None:
         method, folder, output = args.one
         run_one(method, Path(folder), args.max_frames, Path(output), args.camera)
         return
+    folders = [find_sequence(name, args.data) for name in args.sequences]  # all found before any run
     rows = []
-    for name in args.sequences:
-        camera_file = camera_file_for(args.data / name, registered_colour=not args.unregistered_colour)
+    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    command = " ".join(["python", "benchmarks/frontend.py", *sys.argv[1:]])
+    for folder in folders:
+        camera_file = camera_file_for(folder, registered_colour=not args.unregistered_colour)
         for method in args.methods:
-            rows.append(run_child(method, args.data / name, args.max_frames, camera_file))
-            print(f"{name} / {METHODS[method]}: done", file=sys.stderr, flush=True)
+            row = run_child(method, folder, args.max_frames, camera_file)
+            row.update(date=datetime.datetime.now().isoformat(timespec="seconds"), command=command, machine=machine)
+            rows.append(row)
+            print(f"{folder.name} / {METHODS[method]}: done", file=sys.stderr, flush=True)
     table = format_table(rows)
     print(table)
-    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
-    report = {"command": " ".join(sys.argv), "machine": machine, "rows": rows}
-    atomic_write_text(ROOT / "benchmarks" / "results" / "frontend.json", json.dumps(report, indent=2) + "\n")
+    results = ROOT / "benchmarks" / "results" / "frontend.json"
+    old = json.loads(results.read_text())["rows"] if results.is_file() else []
+    report = {"command": command, "machine": machine,
+              "rows": merge_rows(old, rows, ("key", "sequence", "frames", "camera_file"))}
+    atomic_write_text(results, json.dumps(report, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -2,6 +2,11 @@
 
     python benchmarks/reconstruct.py                         # 7-Scenes (first 150 frames) + a synthetic loop
     python benchmarks/reconstruct.py --max-frames 0          # all 700 7-Scenes frames
+    python benchmarks/reconstruct.py --sequences rgbd_dataset_freiburg1_xyz --max-frames 0 --skip-synthetic
+
+Real sequences are named by folder (``--sequences``, default 7-Scenes redkitchen) and looked for in the ``--data``
+folders (default: ``shared/data`` and ``data`` beside the repository); one that is missing stops the run at once
+with a line saying how to get it. ``--max-frames`` applies to each real sequence.
 
 Every case is one ``reconstruct`` run in its own process (peak memory = that process's ru_maxrss, read with
 wait4), written under benchmarks/results/runs/. Rendering scores are those of metrics.json: renders at full
@@ -27,7 +32,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.sequences import camera_file_for  # noqa: E402
+from benchmarks.sequences import DATA_FOLDERS, KITCHEN, camera_file_for, find_sequence, merge_rows  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
@@ -125,15 +130,20 @@ def bridge_gains(rows: list[dict]) -> list[dict]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
-    parser.add_argument("--max-frames", type=int, default=150, help="7-Scenes frames to use (0: all 700)")
+    parser.add_argument("--data", type=Path, nargs="*", default=list(DATA_FOLDERS),
+                        help="folders holding the sequences by their folder names")
+    parser.add_argument("--sequences", nargs="*", default=[KITCHEN], help="real sequences: folder names (or paths)")
+    parser.add_argument("--max-frames", type=int, default=150, help="frames of each real sequence (0: all)")
     parser.add_argument("--presets", nargs="*", default=list(PRESETS))
     parser.add_argument("--skip-synthetic", action="store_true")
     arguments = parser.parse_args()
     runs = ROOT / "benchmarks" / "results" / "runs"
-    kitchen = arguments.data / "7scenes_redkitchen_0-699"
-    # (sequence, frames, settings, whether its frames are 320x240 synthetic ones)
-    cases = [(kitchen, arguments.max_frames or None, ["--camera", str(camera_file_for(kitchen))], False)]
+    # (sequence, frames, settings, whether its frames are 320x240 synthetic ones); every folder found before any run.
+    cases = []
+    for folder in [find_sequence(name, arguments.data) for name in arguments.sequences]:
+        camera_file = camera_file_for(folder)
+        cases.append((folder, arguments.max_frames or None, [] if camera_file is None else ["--camera", str(camera_file)],
+                      False))
     if not arguments.skip_synthetic:
         synthetic = runs / "synthetic_loop_120_320x240_ss3"
         if not (synthetic / "groundtruth.txt").is_file():
@@ -146,17 +156,23 @@ def main() -> None:
             for bridge in (True, False):
                 out = runs / f"{sequence.name}__{preset}__bridge_{'on' if bridge else 'off'}"
                 print(f"running {preset}, bridge {'on' if bridge else 'off'} on {sequence.name} ...", flush=True)
-                rows.append(run_case(sequence, preset, bridge, out, max_frames, settings))
+                rows.append(run_case(sequence, preset, bridge, out, max_frames, settings) | {"max_frames": max_frames})
     table = format_table(rows)
     gains = bridge_gains(rows)
     print(table)
     for gain in gains:
         print(f"bridge gain, {gain['sequence']} {gain['preset']}: {gain['novel_psnr_gain_db']:+.2f} dB novel-view PSNR")
     machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
-    result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine,
-              "command": " ".join(["python", "benchmarks/reconstruct.py", *sys.argv[1:]]),
-              "max_frames_7scenes": arguments.max_frames or None, "rows": rows, "bridge_gains": gains}
-    atomic_write_text(ROOT / "benchmarks" / "results" / "reconstruct.json", json.dumps(result, indent=2) + "\n")
+    command = " ".join(["python", "benchmarks/reconstruct.py", *sys.argv[1:]])
+    date = datetime.datetime.now().isoformat(timespec="seconds")
+    rows = [row | {"date": date, "command": command} for row in rows]
+    # Rows of sequences, presets and bridge settings not run this time stay (with the earlier run's date).
+    path = ROOT / "benchmarks" / "results" / "reconstruct.json"
+    old = json.loads(path.read_text()) if path.is_file() else {"rows": []}
+    earlier = [{"date": old["date"], "command": old["command"]} | row for row in old["rows"]]
+    rows = merge_rows(earlier, rows, ("sequence", "preset", "bridge"))
+    result = {"date": date, "machine": machine, "command": command, "rows": rows, "bridge_gains": bridge_gains(rows)}
+    atomic_write_text(path, json.dumps(result, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -1,8 +1,14 @@
 """One benchmark over the real data: tambridge against its peers, side by side, on the same machine.
 
-    python benchmarks/run_all.py --data ../shared/data            # every sequence with ground truth, full length
+    python benchmarks/run_all.py                                  # every sequence with ground truth, full length
     python benchmarks/run_all.py --data ../shared/data --quick    # first 100 frames of each
-    python benchmarks/run_all.py --data ../shared/data --gpu      # tambridge's mapping on CUDA (gsplat); stops at once without CUDA
+    python benchmarks/run_all.py --gpu                            # tambridge's mapping on CUDA (gsplat); stops at once without CUDA
+    python benchmarks/run_all.py --sequences rgbd_dataset_freiburg1_xyz --methods "tambridge default"
+
+``--data`` names the folders that hold the sequences (default: ``shared/data`` and ``data`` beside the
+repository); every sub-folder with rgb.txt, depth.txt and groundtruth.txt is a sequence, the first of a name wins.
+``--sequences`` picks some by folder name (or path); one that is in no folder stops the run at once with a line
+saying how to get it. A run on a subset replaces its (sequence, method) rows in run_all.json and keeps the others.
 
 With ``--gpu`` every tambridge run gets ``--device cuda`` (its Gaussian map, bridge and rendering evaluation run on
 the GPU through gsplat; tracking, mesh and COLMAP stay on the CPU), and each row says which device ran it.
@@ -28,7 +34,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.sequences import camera_file_for  # noqa: E402
+from benchmarks.sequences import DATA_FOLDERS, FR1_XYZ, camera_file_for, find_sequence, merge_rows  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
@@ -63,14 +69,20 @@ METHODS = (
 )
 
 
-def sequences_with_ground_truth(data: Path) -> list[Path]:
-    """Folders under ``data`` that are TUM-layout sequences (rgb.txt, depth.txt) with groundtruth.txt and >= 10 frames."""
-    found = []
-    for folder in sorted(p for p in data.iterdir() if p.is_dir()):
-        if all((folder / name).is_file() for name in ("rgb.txt", "depth.txt", "groundtruth.txt")):
-            if len(open_sequence(folder, check_depth_scale=False)) >= 10:
-                found.append(folder)
-    return found
+def sequences_with_ground_truth(data: list[Path]) -> list[Path]:
+    """Folders under the ``data`` folders that are TUM-layout sequences (rgb.txt, depth.txt) with groundtruth.txt
+    and >= 10 frames; a name found in two folders counts once (the first)."""
+    found = {}
+    for parent in data:
+        if not Path(parent).is_dir():
+            continue
+        for folder in sorted(p for p in Path(parent).iterdir() if p.is_dir()):
+            if folder.name in found:
+                continue
+            if all((folder / name).is_file() for name in ("rgb.txt", "depth.txt", "groundtruth.txt")):
+                if len(open_sequence(folder, check_depth_scale=False)) >= 10:
+                    found[folder.name] = folder
+    return list(found.values())
 
 
 def run_method(method: Method, sequence: Path, out: Path, max_frames: int | None, device: str = "cpu") -> dict:
@@ -117,6 +129,14 @@ def run_method(method: Method, sequence: Path, out: Path, max_frames: int | None
     return row
 
 
+def sequence_order(row: dict) -> tuple:
+    """Rows of the whole TUM fr1/xyz first (the motion-capture benchmark), then by sequence name; methods keep
+    their order."""
+    names = [method.name for method in METHODS]
+    method = names.index(row["method"]) if row["method"] in names else len(names)
+    return (row["sequence"] != FR1_XYZ, row["sequence"], method)
+
+
 def format_table(rows: list[dict]) -> str:
     """A Markdown table of the rows."""
     columns = [("sequence", "sequence", "{}"), ("method", "method", "{}"), ("ATE cm", "ate_cm", "{:.2f}"),
@@ -151,28 +171,31 @@ def describe_machine(gpu: str | None = None) -> str:
     return f"{model}, {os.cpu_count()} cores, Python {platform.python_version()}" + (f", {gpu}" if gpu else "")
 
 
-def update_results_doc(table: str, command: str, machine: str, date: str) -> None:
-    """Rewrite docs/benchmarks.md's section between the results markers: the machine, the date, the command and the
-    table."""
+def update_results_doc(result: dict) -> None:
+    """Rewrite docs/benchmarks.md's section between the results markers: where, when and by which command the rows
+    were measured (each row records its own), and the table."""
     document = ROOT / "docs" / "benchmarks.md"
     text = document.read_text()
     if RESULTS_START not in text:
         return
     head, rest = text.split(RESULTS_START, 1)
     _, tail = rest.split(RESULTS_END, 1)
-    section = (f"{RESULTS_START}\nMeasured {date} on {machine} with `{command}`:\n\n"
-               f"{table}\n{RESULTS_END}")
+    runs = dict.fromkeys((row.get("command", result["command"]), row.get("date", result["date"])[:10],
+                          row.get("machine", result["machine"])) for row in result["rows"])
+    measured = "; ".join(f"{date} on {machine} with `{command}`" for command, date, machine in runs)
+    section = f"{RESULTS_START}\nMeasured {measured}:\n\n{format_table(result['rows'])}\n{RESULTS_END}"
     atomic_write_text(document, head + section + tail)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    parser.add_argument("--data", type=Path, nargs="*", default=list(DATA_FOLDERS),
+                        help="folders holding the sequences by their folder names")
     parser.add_argument("--quick", action="store_true", help="first 100 frames of each sequence")
     parser.add_argument("--gpu", action="store_true",
                         help="tambridge runs map on CUDA with gsplat (--device cuda); stops at once when there is no GPU")
     parser.add_argument("--methods", nargs="*", help="subset of method names")
-    parser.add_argument("--sequences", nargs="*", help="subset of sequence folder names")
+    parser.add_argument("--sequences", nargs="*", help="subset of sequence folder names (or paths)")
     parser.add_argument("--no-doc", action="store_true", help="do not rewrite docs/benchmarks.md's results section")
     parser.add_argument("--doc-only", action="store_true",
                         help="run nothing: regenerate docs/benchmarks.md's results section from benchmarks/results/run_all.json")
@@ -180,7 +203,7 @@ def main() -> None:
     results_path = ROOT / "benchmarks" / "results" / "run_all.json"
     if arguments.doc_only:
         result = json.loads(results_path.read_text())
-        update_results_doc(format_table(result["rows"]), result["command"], result["machine"], result["date"][:10])
+        update_results_doc(result)
         return
     gpu = None
     if arguments.gpu:
@@ -194,15 +217,18 @@ def main() -> None:
             gpu = torch.cuda.get_device_name(resolve_device("cuda"))
         except ConfigError as error:
             parser.exit(2, f"run_all.py --gpu: {error}\n(without --gpu every method runs on the CPU)\n")
+    if arguments.sequences:  # every one found before any run
+        sequences = [find_sequence(name, arguments.data) for name in arguments.sequences]
+    else:
+        sequences = sequences_with_ground_truth(arguments.data)
     max_frames = 100 if arguments.quick else None
     runs = ROOT / "benchmarks" / "results" / "runs"
     runs.mkdir(parents=True, exist_ok=True)
     rows = []
     # Frames/s on a shared 2-core machine depend on what else runs: the machine line says so.
     load_at_start = os.getloadavg()[0]
-    for sequence in sequences_with_ground_truth(arguments.data):
-        if arguments.sequences and sequence.name not in arguments.sequences:
-            continue
+    command = " ".join(["python", "benchmarks/run_all.py", *sys.argv[1:]])
+    for sequence in sequences:
         for method in METHODS:
             if arguments.methods and method.name not in arguments.methods:
                 continue
@@ -210,17 +236,20 @@ def main() -> None:
                 continue  # its colour is registered: the same run as the default
             out = runs / f"{sequence.name}__{method.name.split(' (')[0].replace(' ', '_')}"
             print(f"running {method.name} on {sequence.name} ...", flush=True)
-            rows.append(run_method(method, sequence, out, max_frames, "cuda" if arguments.gpu else "cpu"))
-    table = format_table(rows)
-    print(table)
+            row = run_method(method, sequence, out, max_frames, "cuda" if arguments.gpu else "cpu")
+            rows.append(row | {"date": datetime.datetime.now().isoformat(timespec="seconds"), "command": command})
+    print(format_table(rows))
     machine = f"{describe_machine(gpu)} (1-minute load average {load_at_start:.1f} at the start, {os.getloadavg()[0]:.1f} at the end)"
-    command = ("python benchmarks/run_all.py --data ../shared/data" + (" --quick" if arguments.quick else "")
-               + (" --gpu" if arguments.gpu else ""))
+    rows = [row | {"machine": machine} for row in rows]
+    if arguments.sequences or arguments.methods:  # a subset: the other rows stay, with their own date and command
+        old = json.loads(results_path.read_text()) if results_path.is_file() else {"rows": []}
+        earlier = [{"date": old["date"], "command": old["command"], "machine": old["machine"]} | row for row in old["rows"]]
+        rows = merge_rows(earlier, rows, ("sequence", "method"))
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine, "command": command,
-              "rows": rows}
+              "rows": sorted(rows, key=sequence_order)}
     atomic_write_text(results_path, json.dumps(result, indent=2) + "\n")
     if not arguments.no_doc:
-        update_results_doc(table, command, machine, result["date"][:10])
+        update_results_doc(result)
 
 
 if __name__ == "__main__":

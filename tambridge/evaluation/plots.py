@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from tambridge.evaluation.trajectory import TrajectoryErrors  # noqa: E402
+from tambridge.evaluation.trajectory import WORST_WINDOW_S, TrajectoryErrors, worst_error_window  # noqa: E402
 from tambridge.files import atomic_path  # noqa: E402
 
 
@@ -22,7 +22,8 @@ def _top_view_axes(positions_m: np.ndarray) -> tuple[int, int]:
 
 
 def plot_trajectory_errors(results: dict[str, TrajectoryErrors], path: Path, title: str = "") -> None:
-    """Write one PNG: left, top view of each aligned estimate and the reference; right, ATE over time."""
+    """Write one PNG: left, top view of each aligned estimate and the reference; right, ATE over time with the
+    first estimate's worst :data:`WORST_WINDOW_S`-second window shaded."""
     figure, (top, over_time) = plt.subplots(1, 2, figsize=(12, 5))
     reference = next(iter(results.values())).ref
     axis_a, axis_b = _top_view_axes(reference.positions_m)
@@ -32,6 +33,11 @@ def plot_trajectory_errors(results: dict[str, TrajectoryErrors], path: Path, tit
         positions = errors.aligned_est.positions_m
         top.plot(positions[:, axis_a], positions[:, axis_b], label=f"{name} ({errors.ate_rmse_m * 100:.2f} cm)")
         over_time.plot(errors.timestamps_s - errors.timestamps_s[0], errors.ate_errors_m * 100.0, label=name)
+    first = next(iter(results.values()))
+    worst = worst_error_window(first.timestamps_s, first.ate_errors_m, WORST_WINDOW_S)
+    origin_s = first.timestamps_s[0]
+    over_time.axvspan(worst.start_s - origin_s, worst.end_s - origin_s, color="red", alpha=0.15,
+                      label=f"worst {WORST_WINDOW_S:g} s ({worst.rmse_m * 100:.2f} cm RMSE)")
     top.set_xlabel(f"{names[axis_a]} [m]")
     top.set_ylabel(f"{names[axis_b]} [m]")
     top.set_aspect("equal", adjustable="datalim")

@@ -1,9 +1,9 @@
 """The run report: ``report/index.html`` with matplotlib PNGs beside it, readable from ``file://`` with no server.
 
-Sections appear only when their data exists: trajectory against ground truth (top view and ATE over time,
-COLMAP's Sim(3)-aligned path too when given), renders beside input frames, an interactive viewer of splats.ply
-(``viewer/``, :mod:`tambridge.export.web_viewer`), time per stage, Gaussian count over time, and the metrics
-table (every scalar of ``metrics.json``). Images are linked by relative paths,
+Sections appear only when their data exists: trajectory against ground truth (top view and ATE over time with
+the worst 2-second segment shaded and named, COLMAP's Sim(3)-aligned path too when given), renders beside input
+frames, an interactive viewer of splats.ply (``viewer/``, :mod:`tambridge.export.web_viewer`), time per stage,
+Gaussian count over time, and the metrics table (every scalar of ``metrics.json``). Images are linked by relative paths,
 so the folder can be moved or zipped as a whole. Every file is written atomically.
 """
 
@@ -27,7 +27,9 @@ from tambridge.state import dotted_items  # noqa: E402
 from tambridge.evaluation.colmap import is_monocular_trajectory_file  # noqa: E402
 from tambridge.evaluation.metrics import RunMetrics, metrics_json, read_metrics  # noqa: E402
 from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
-from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory  # noqa: E402
+from tambridge.evaluation.trajectory import (  # noqa: E402
+    WORST_WINDOW_S, TrajectoryErrors, evaluate_trajectory, worst_error_window,
+)
 from tambridge.export.web_viewer import RUN_VIEWER_FOLDER, VIEWER_FILES, write_run_viewer  # noqa: E402
 from tambridge.files import atomic_path, atomic_write_text  # noqa: E402
 from tambridge.images import rgb_uint8  # noqa: E402
@@ -85,7 +87,7 @@ def write_report(
             "<h2>Trajectory</h2>"
             '<p>Left: top view of each estimate after alignment, ground truth dashed. Right: absolute trajectory '
             "error over time.</p>"
-            '<img src="trajectory.png" alt="trajectory top view and ATE over time">'
+            '<img src="trajectory.png" alt="trajectory top view and ATE over time">' + _worst_segments(trajectory_errors) +
             '<table class="small"><tr><th>trajectory</th><th>alignment</th><th>poses</th><th>ATE RMSE [cm]</th>'
             f"<th>RPE [cm/frame]</th></tr>{rows}</table>"
         )
@@ -110,6 +112,17 @@ def write_report(
     atomic_write_text(index, page)
     logger.info("report: %s", index)
     return index
+
+
+def _worst_segments(trajectory_errors: dict[str, TrajectoryErrors]) -> str:
+    """A paragraph naming each estimate's worst :data:`WORST_WINDOW_S`-second window (shaded in the plot for the
+    first): its poses, its times from the estimate's first pose and its RMSE."""
+    lines = "".join(
+        f"<li>{html.escape(name)}: "
+        f"{worst_error_window(errors.timestamps_s, errors.ate_errors_m).describe(errors.timestamps_s[0])}</li>"
+        for name, errors in trajectory_errors.items()
+    )
+    return f'<p>Worst {WORST_WINDOW_S:g}-second segment (highest ATE RMSE):</p><ul class="worst">{lines}</ul>'
 
 
 def report_from_run(run_dir: Path) -> Path:

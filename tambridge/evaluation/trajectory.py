@@ -16,6 +16,9 @@ from tambridge.trajectory import Trajectory
 
 Alignment = Literal["se3", "sim3", "none"]
 MAX_TIME_DIFFERENCE_S = 0.02
+TIME_TOLERANCE_S = 1e-6  # TUM's timestamps have microseconds; sums of k/30 s must not fall out of a window
+WORST_WINDOW_S = 2.0
+"""The span of :func:`worst_error_window` in reports: long enough to hold a fast turn, short against a sequence."""
 
 
 @dataclasses.dataclass
@@ -127,3 +130,44 @@ def evaluate_trajectory(
 def ate_rmse_m(traj_est: Trajectory, traj_ref: Trajectory, align: Alignment = "se3") -> float:
     """ATE RMSE in metres after alignment: the headline number of a trajectory."""
     return evaluate_trajectory(traj_est, traj_ref, align).ate_rmse_m
+
+
+@dataclasses.dataclass(frozen=True)
+class ErrorWindow:
+    """A span of associated poses: ``first``..``last`` (inclusive indices into the evaluated poses, which are the
+    frames in order where every frame had a reference pose), their timestamps (s, the sequence's clock) and the
+    RMSE of the translational errors inside (m)."""
+
+    first: int
+    last: int
+    start_s: float
+    end_s: float
+    rmse_m: float
+
+    def describe(self, origin_s: float) -> str:
+        """One line for reports; times relative to ``origin_s``."""
+        return (f"poses {self.first}-{self.last}, {self.start_s - origin_s:.1f}-{self.end_s - origin_s:.1f} s "
+                f"(timestamps {self.start_s:.3f}-{self.end_s:.3f}): RMSE {self.rmse_m * 100:.2f} cm")
+
+
+def worst_error_window(timestamps_s: np.ndarray, errors_m: np.ndarray, window_s: float = WORST_WINDOW_S) -> ErrorWindow:
+    """The window of at most ``window_s`` seconds (poses ``i..j`` with ``t_j - t_i <= window_s``, as long as they
+    reach) whose per-pose errors ``errors_m`` (N,) at increasing ``timestamps_s`` (N,) have the highest RMSE; the
+    whole trajectory when it is shorter. Windows start at poses; ties go to the earliest."""
+    timestamps_s, errors_m = np.asarray(timestamps_s, np.float64), np.asarray(errors_m, np.float64)
+    if len(timestamps_s) == 0 or len(timestamps_s) != len(errors_m):
+        raise ValueError(f"worst_error_window: {len(timestamps_s)} timestamps for {len(errors_m)} errors")
+    squared = np.concatenate([[0.0], np.cumsum(errors_m**2)])
+    first = np.arange(len(timestamps_s))
+    # Last pose of each window: the latest within window_s of its first (every window holds its first pose).
+    reach_s = window_s + TIME_TOLERANCE_S
+    last = np.searchsorted(timestamps_s, timestamps_s + reach_s, side="right") - 1
+    rmse = np.sqrt((squared[last + 1] - squared[first]) / (last - first + 1))
+    # Windows cut short by the end are left out (the last full one covers their poses), unless none is full.
+    if timestamps_s[-1] - timestamps_s[0] + TIME_TOLERANCE_S >= window_s:
+        full = timestamps_s <= timestamps_s[-1] - window_s + TIME_TOLERANCE_S
+    else:
+        full = first == 0
+    best = int(np.argmax(np.where(full, rmse, -1.0)))
+    return ErrorWindow(best, int(last[best]), float(timestamps_s[best]), float(timestamps_s[last[best]]),
+                       float(rmse[best]))

@@ -26,12 +26,47 @@ from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 from tambridge.frontend.orb.config import OrbFrontendConfig
 from tambridge.frontend.orb.vocabulary import KeyframeDatabase, bow_score
 from tambridge.geometry import inverse
+from tambridge.settings import Choice
 
 logger = logging.getLogger("tambridge.frontend.orb.loop_closing")
 
 STRONG_COVISIBILITY = 100  # ORB-SLAM's essential graph keeps covisibility edges of at least 100 shared points
 LOOP_GROUP_NEIGHBOURS = 5
 SEGMENT_LINK_INFORMATION = 1e-6  # a guess across a tracking loss: almost no weight against real constraints
+
+
+class LoopOutcome(Choice):
+    """What became of a keyframe the database returned for a loop query (the checks of :func:`detect_loop`, in
+    order)."""
+
+    covisible = "covisible"  # the new keyframe or one that shares map points with it: not a loop
+    low_score = "low_score"  # below loop_min_score_ratio times the lowest score of the covisible neighbours
+    inconsistent = "inconsistent"  # its group was not a candidate for the loop_consistency keyframes before
+    not_tried = "not_tried"  # consistent, but beyond the loop_candidates verified per keyframe
+    unverified = "unverified"  # localise against its group found fewer than loop_min_inliers inliers
+    accepted = "accepted"
+
+
+@dataclasses.dataclass
+class LoopCandidateTrace:
+    """A keyframe the database scored for a loop query: its BoW ``score`` in [0, 1], the ``outcome``, and for a
+    verified one the PnP ``inliers`` its best pose had (0: no pose at all; None: not verified)."""
+
+    keyframe_id: int
+    score: float
+    outcome: LoopOutcome
+    inliers: int | None = None
+
+
+@dataclasses.dataclass
+class LoopQueryTrace:
+    """One loop query of keyframe ``keyframe_id``: ``min_score`` is the bar's reference (lowest score of its best
+    covisible neighbours; None without neighbours: nothing is looked up), ``candidates`` best score first."""
+
+    keyframe_id: int
+    frame_index: int
+    min_score: float | None
+    candidates: list[LoopCandidateTrace]
 
 
 @dataclasses.dataclass
@@ -66,13 +101,16 @@ class LoopConsistency:
 
 def detect_loop(
     slam_map: SlamMap, keyframe: Keyframe, database: KeyframeDatabase, camera: Camera, config: OrbFrontendConfig,
-    consistency: LoopConsistency,
+    consistency: LoopConsistency, trace: list[LoopQueryTrace] | None = None,
 ) -> LoopDetection | None:
     """Look for a keyframe the new one revisits; consistent over consecutive keyframes and verified geometrically,
-    else None."""
+    else None. ``trace``: a list to append this query's :class:`LoopQueryTrace` to (diagnostics; a rejected
+    verification is then run again with a low inlier bar to count its inliers, which changes no decision)."""
     neighbours = keyframe.best_covisible(10)
     if not neighbours:
         consistency.accept([])
+        if trace is not None:
+            trace.append(LoopQueryTrace(keyframe.id, keyframe.frame_index, None, []))
         return None
     min_score = min(
         bow_score(keyframe.bow_words, keyframe.bow_weights, slam_map.keyframes[n].bow_words, slam_map.keyframes[n].bow_weights)
@@ -80,17 +118,31 @@ def detect_loop(
     )
     ids, scores = database.query(keyframe.bow_words, keyframe.bow_weights)
     connected = set(keyframe.covisibility) | {keyframe.id}
+    outcomes = {int(i): LoopOutcome.covisible if i in connected else LoopOutcome.low_score for i in ids}
     candidates = [int(i) for i, s in zip(ids, scores) if i not in connected and s >= config.loop_min_score_ratio * min_score]
+    outcomes.update((c, LoopOutcome.inconsistent) for c in candidates)
     candidates = consistency.accept([(c, {c} | set(slam_map.keyframes[c].covisibility)) for c in candidates])
+    outcomes.update((c, LoopOutcome.not_tried) for c in candidates)
+    inliers: dict[int, int] = {}
+    detection = None
     grid = build_keypoint_grid(keyframe.features.keypoints_px, camera.width, camera.height)
     for candidate_id in candidates[: config.loop_candidates]:
         candidate = slam_map.keyframes[candidate_id]
         group = [candidate] + [slam_map.keyframes[i] for i in candidate.best_covisible(LOOP_GROUP_NEIGHBOURS)]
-        group = [k for k in group if k.id not in connected]
-        fix = localise(slam_map, keyframe.features, grid, slam_map.points_of(group), camera, config, config.loop_min_inliers)
+        group_points = slam_map.points_of([k for k in group if k.id not in connected])
+        fix = localise(slam_map, keyframe.features, grid, group_points, camera, config, config.loop_min_inliers)
         if fix is not None and fix.inlier_count >= config.loop_min_inliers:
-            return LoopDetection(candidate_id, fix)
-    return None
+            outcomes[candidate_id], inliers[candidate_id] = LoopOutcome.accepted, fix.inlier_count
+            detection = LoopDetection(candidate_id, fix)
+            break
+        outcomes[candidate_id] = LoopOutcome.unverified
+        if trace is not None:
+            probe = localise(slam_map, keyframe.features, grid, group_points, camera, config, 6)
+            inliers[candidate_id] = 0 if probe is None else probe.inlier_count
+    if trace is not None:
+        trace.append(LoopQueryTrace(keyframe.id, keyframe.frame_index, float(min_score), [
+            LoopCandidateTrace(int(i), float(s), outcomes[int(i)], inliers.get(int(i))) for i, s in zip(ids, scores)]))
+    return detection
 
 
 def _graph_edges(slam_map: SlamMap, world_from_camera: np.ndarray) -> list[PoseEdge]:

@@ -1,0 +1,59 @@
+"""The benchmarks' sequence lookup (--data folders, a one-line message for a missing one), their row merging, and
+benchmarks/loops.py's ground-truth revisits."""
+
+import numpy as np
+import pytest
+
+from benchmarks.loops import relative_drift_m, revisits
+from benchmarks.run_all import sequence_order
+from benchmarks.sequences import FR1_XYZ, MissingSequence, find_sequence, merge_rows
+from tambridge.geometry import exp_se3
+
+
+def _sequence(folder):
+    folder.mkdir(parents=True)
+    (folder / "rgb.txt").write_text("# none\n")
+    return folder
+
+
+def test_a_sequence_is_found_by_name_in_the_data_folders_or_by_path(tmp_path):
+    first, second = tmp_path / "a", tmp_path / "b"
+    found = _sequence(second / FR1_XYZ)
+    assert find_sequence(FR1_XYZ, [first, second]) == found
+    assert find_sequence(str(found), [first]) == found
+    shadow = _sequence(first / FR1_XYZ)
+    assert find_sequence(FR1_XYZ, [first, second]) == shadow  # the first folder wins
+
+
+def test_a_missing_sequence_stops_with_one_line_naming_the_folders_and_how_to_get_it(tmp_path):
+    with pytest.raises(MissingSequence) as raised:
+        find_sequence(FR1_XYZ, [tmp_path / "x", tmp_path / "y"])
+    message = str(raised.value)
+    assert "\n" not in message and message.startswith(f"{FR1_XYZ}: not found in {tmp_path / 'x'}, {tmp_path / 'y'}")
+    assert "tambridge download fr1/xyz" in message and "neha191091/3d_scan_exercises" in message and "0229f5f" in message
+    with pytest.raises(MissingSequence, match=r"^other: not found in .*--data$"):
+        find_sequence("other", [tmp_path])
+
+
+def test_rows_of_a_subset_run_replace_their_own_and_keep_the_rest():
+    old = [{"sequence": "s", "method": "m", "ate": 1}, {"sequence": "t", "method": "m", "ate": 2}]
+    new = [{"sequence": "t", "method": "m", "ate": 3}, {"sequence": "u", "method": "m", "ate": 4}]
+    merged = merge_rows(old, new, ("sequence", "method"))
+    assert [(row["sequence"], row["ate"]) for row in merged] == [("s", 1), ("t", 3), ("u", 4)]
+    rows = [{"sequence": "7scenes", "method": "tambridge fast"}, {"sequence": FR1_XYZ, "method": "tambridge fast"},
+            {"sequence": FR1_XYZ, "method": "tambridge default"}]
+    assert sorted(rows, key=sequence_order) == [rows[2], rows[1], rows[0]]
+
+
+def test_revisits_are_pairs_far_apart_in_time_near_in_pose():
+    times = np.arange(6, dtype=float)
+    # Twists are (translation, rotation): a camera moving 8 mm a second along x, then back near the start.
+    poses = np.stack([exp_se3(np.array([0.008 * i, 0.0, 0.0, 0.0, 0.0, 0.0])) for i in range(6)])
+    poses[5] = exp_se3(np.array([0.001, 0.0, 0.0, 0.0, 0.0, 0.0]))  # back at the start
+    poses[4] = exp_se3(np.array([0.0, 0.0, 0.0, 0.0, np.deg2rad(30.0), 0.0]))  # at the start, looking aside
+    assert revisits(times, poses, min_gap_s=3.0, within_m=0.01, within_deg=10.0) == [(5, 0), (5, 1)]
+    assert revisits(times, poses, min_gap_s=4.5, within_m=0.01, within_deg=10.0) == [(5, 0)]
+    # Drift between a revisit's ends: the estimate's relative translation against the truth's.
+    estimate = poses.copy()
+    estimate[5, 0, 3] += 0.03
+    assert relative_drift_m(estimate, poses, 5, 0) == pytest.approx(0.03)
