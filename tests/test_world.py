@@ -209,3 +209,19 @@ def test_run_writes_every_file_in_one_upright_world(tilted_sequence, tmp_path, w
     assert any(abs(plane.normal[2]) > np.cos(np.radians(1.0)) for plane in dominant_planes(mesh_upright.vertices))
     assert metrics.trajectory.ate_rmse_m == pytest.approx(first_metrics.trajectory.ate_rmse_m, abs=1e-9)
     assert metrics.trajectory.rpe_rot_rmse_deg == pytest.approx(first_metrics.trajectory.rpe_rot_rmse_deg, abs=1e-9)
+
+
+def test_a_bad_accelerometer_file_stops_the_run_before_any_output(tilted_sequence, tmp_path):
+    source, _ = tilted_sequence
+    folder = tmp_path / "room"
+    folder.mkdir()
+    for item in source.iterdir():
+        (folder / item.name).symlink_to(item)
+    (folder / "accelerometer.txt").write_text("0.0 0.1 nine 0.3\n")
+    with pytest.raises(SequenceFormatError, match=r"accelerometer.txt line 1: expected 4 numbers"):
+        reconstruct(folder, tmp_path / "out", load_config(None, FAST), progress=False)
+    assert not (tmp_path / "out").exists()
+    # With the files in the first camera's frame the accelerometer is not read.
+    reconstruct(folder, tmp_path / "first", load_config(None, (*FAST, "export.world=first_camera", "mapper.enabled=false",
+                                                                "mesh.enabled=false")), progress=False)
+    assert read_metrics(tmp_path / "first" / "metrics.json").world.up_source == "first_camera"

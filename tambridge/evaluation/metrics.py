@@ -154,7 +154,7 @@ class RunMetrics:
     trajectory_unavailable: str | None
     map: MapMetrics | None = dataclasses.field(default=None, metadata=IN_PARENT)
     device: DeviceMetrics = dataclasses.field(metadata=IN_PARENT)
-    world: WorldMetrics | None = None
+    world: WorldMetrics | None = dataclasses.field(default=None, metadata=OMITTED_WHEN_NONE)
 
 
 def metrics_json(metrics: RunMetrics) -> dict:
