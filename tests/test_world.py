@@ -225,3 +225,16 @@ def test_a_bad_accelerometer_file_stops_the_run_before_any_output(tilted_sequenc
     reconstruct(folder, tmp_path / "first", load_config(None, (*FAST, "export.world=first_camera", "mapper.enabled=false",
                                                                 "mesh.enabled=false")), progress=False)
     assert read_metrics(tmp_path / "first" / "metrics.json").world.up_source == "first_camera"
+
+
+def test_planes_do_not_depend_on_the_order_of_the_points():
+    rng = np.random.default_rng(1)
+    floor = np.column_stack([rng.uniform(-2, 2, (3000, 2)), rng.normal(0, 0.003, 3000)])
+    wall = np.column_stack([rng.uniform(-2, 2, 2000), np.full(2000, 1.5), rng.uniform(0, 2.5, 2000)])
+    points = np.concatenate([floor, wall, rng.uniform(-2, 2, (500, 3))])
+    planes = dominant_planes(points)
+    shuffled = dominant_planes(points[rng.permutation(len(points))])
+    assert len(planes) == len(shuffled) >= 2
+    for plane, other in zip(planes, shuffled):
+        np.testing.assert_array_equal(plane.normal, other.normal)
+    assert abs(planes[0].normal[2]) > np.cos(np.radians(0.5)) and abs(planes[1].normal[1]) > np.cos(np.radians(0.5))

@@ -141,10 +141,13 @@ def camera_up(world_from_camera: np.ndarray) -> np.ndarray:
 def dominant_planes(points_m: np.ndarray, seed: int = 0) -> list[Plane]:
     """Up to :data:`MAX_PLANES` planes of points (P, 3), largest first: RANSAC on what earlier planes left, each
     refitted by least squares to its inliers; a plane holding less than :data:`PLANE_MIN_SHARE` ends the search.
-    Deterministic for a ``seed``."""
+    Deterministic for a ``seed`` and the set of points, whatever their order."""
     rng = np.random.default_rng(seed)
     points = np.asarray(points_m, np.float64).reshape(-1, 3)
     points = points[np.isfinite(points).all(axis=1)]
+    # Sorted, so that the same points in another order (Open3D's mesh lists its vertices in no fixed one) give the
+    # same planes, and a run its same files.
+    points = points[np.lexsort(points.T[::-1])]
     if len(points) > PLANE_MAX_POINTS:
         points = points[np.sort(rng.choice(len(points), PLANE_MAX_POINTS, replace=False))]
     needed = max(3, PLANE_MIN_SHARE * len(points))
