@@ -27,7 +27,7 @@ from tambridge.export.world import (
 )
 from tambridge.gaussians.model import GaussianTensors
 from tambridge.gaussians.rasterizer import render
-from tambridge.geometry import exp_se3, inverse
+from tambridge.geometry import exp_se3, inverse, transform_points
 from tambridge.io.synthetic import SynthOptions, default_camera, write_synthetic_sequence
 from tambridge.io.tum import KINECT_CAMERA_FROM_ACCELEROMETER, AccelerometerSamples, read_accelerometer
 from tambridge.trajectory import Trajectory, read_tum_trajectory
@@ -238,3 +238,24 @@ def test_planes_do_not_depend_on_the_order_of_the_points():
     for plane, other in zip(planes, shuffled):
         np.testing.assert_array_equal(plane.normal, other.normal)
     assert abs(planes[0].normal[2]) > np.cos(np.radians(0.5)) and abs(planes[1].normal[1]) > np.cos(np.radians(0.5))
+
+
+def test_sparse_points_and_mesh_turn_with_the_poses():
+    import trimesh
+
+    from tambridge.frontend.contract import FrontendResult
+
+    world = WorldFrame(ExportWorld.upright, UpSource.accelerometer, upright_from_up(np.array([0.3, -0.9, 0.2])))
+    trajectory = Trajectory([0.0], exp_se3(np.array([0.2, 0.1, -0.3, 0.1, 0.2, 0.3]))[None])
+    points = np.array([[0.1, 0.2, 1.5], [-0.4, 0.3, 2.0]])
+    result = FrontendResult(trajectory, np.array([True]), trajectory, {0: trajectory.world_from_camera[0]}, {0: 0},
+                            points, np.zeros((2, 3), np.uint8), np.arange(2), {}, 0, 0, 0)
+    turned = world.frontend_result(result)
+    # A point keeps its place in its camera: camera_from_world times point is the same in both worlds.
+    in_camera = transform_points(inverse(trajectory.world_from_camera[0]), points)
+    upright_pose = world.trajectory(trajectory).world_from_camera[0]
+    np.testing.assert_allclose(transform_points(inverse(upright_pose), turned.map_points_world_m), in_camera, atol=1e-12)
+    np.testing.assert_array_equal(result.map_points_world_m, points)  # the run's own result is left as it was
+    mesh = trimesh.Trimesh(vertices=points.tolist() + [[0.0, 0.0, 1.0]], faces=[[0, 1, 2]], process=False)
+    np.testing.assert_allclose(world.mesh(mesh).vertices, transform_points(world.upright_from_first_camera, mesh.vertices))
+    np.testing.assert_array_equal(world.mesh(mesh).faces, mesh.faces)

@@ -91,11 +91,15 @@ class WorldFrame:
 
     def points(self, points_m: np.ndarray) -> np.ndarray:
         """(P, 3) metres."""
-        return points_m if self.is_identity else transform_points(self.upright_from_first_camera, np.asarray(points_m, np.float64))
+        if self.is_identity:
+            return points_m
+        return transform_points(self.upright_from_first_camera, np.asarray(points_m, np.float64))
 
     def frontend_result(self, result: FrontendResult) -> FrontendResult:
         """The result with its map points in this world (what sparse_map.npz holds of it)."""
-        return result if self.is_identity else dataclasses.replace(result, map_points_world_m=self.points(result.map_points_world_m))
+        if self.is_identity:
+            return result
+        return dataclasses.replace(result, map_points_world_m=self.points(result.map_points_world_m))
 
     def gaussians(self, gaussians: GaussianTensors) -> GaussianTensors:
         """The Gaussians' means rotated; they are isotropic, so nothing else changes."""
