@@ -169,7 +169,7 @@ def reconstruct(
                     mesh = run_mesh(sequence, tracking.trajectory, config.mesh, mapping)
             with run_log.stage("export"):
                 world = find_world(config.export.world, tracking.trajectory, accelerometer,
-                                   surface_points(mesh, gaussians), config.seed)
+                                   surface_points(mesh, gaussians, tracking), config.seed)
                 write_exports(output_dir, world, tracking, gaussians, mesh)
             if live_view is not None:
                 with run_log.stage("viewer"):
@@ -186,14 +186,15 @@ def reconstruct(
                                  metrics, output_dir)
 
 
-def surface_points(mesh, gaussians) -> np.ndarray:
+def surface_points(mesh, gaussians, tracking: FrontendResult) -> np.ndarray:
     """Points (P, 3) on the scene's surfaces (first-camera world) for the plane search of the upright world: the
-    mesh's vertices (even over surfaces) where there is a mesh, else the Gaussians' means, else none."""
+    mesh's vertices (even over surfaces) where there is a mesh, else the Gaussians' means, else the frontend's map
+    points (none for Open3D)."""
     if mesh is not None and len(mesh.vertices):
         return np.asarray(mesh.vertices, np.float64)
-    if gaussians is not None:
+    if gaussians is not None and len(gaussians):
         return gaussians.means_m.detach().cpu().numpy().astype(np.float64)
-    return np.zeros((0, 3))
+    return np.asarray(tracking.map_points_world_m, np.float64).reshape(-1, 3)
 
 
 def write_exports(output_dir: Path, world: WorldFrame, tracking: FrontendResult, gaussians, mesh) -> None:
