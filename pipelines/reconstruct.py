@@ -30,17 +30,19 @@ from tambridge.config import Config, check_config, config_for_camera, to_dict, t
 from tambridge.device import device_summary, resolve_device
 from tambridge.errors import TrackingFailedError
 from tambridge.evaluation.mapping import mapping_metrics
-from tambridge.evaluation.metrics import DeviceMetrics, RunMetrics, TrajectoryMetrics, write_metrics
+from tambridge.evaluation.metrics import DeviceMetrics, RunMetrics, TrajectoryMetrics, WorldMetrics, write_metrics
 from tambridge.evaluation.report import REPORT_FILES, write_run_report
 from tambridge.evaluation.trajectory import TrajectoryErrors, TrajectoryEvaluationError, evaluate_trajectory
-from tambridge.export.mesh import write_run_mesh
+from tambridge.export.config import ExportWorld
+from tambridge.export.mesh import run_mesh, write_mesh
 from tambridge.export.sparse_map import write_sparse_map
 from tambridge.export.splats import save_ply
+from tambridge.export.world import WorldFrame, find_world
 from tambridge.files import atomic_write_text
 from tambridge.frontend.contract import Frontend, FrontendResult
 from tambridge.frontend.factory import make_frontend
 from tambridge.io.prefetch import FramePrefetcher
-from tambridge.io.tum import RgbdSequence, open_sequence
+from tambridge.io.tum import RgbdSequence, find_accelerometer, open_sequence
 from tambridge.mapping.stage import MappingStage
 from tambridge.run_folder import RunFolder, Start, check_output_folder
 from tambridge.runlog import RunLog, peak_memory_mb
@@ -57,7 +59,8 @@ RUN_FILES = ("config.yaml", "run.log", "trajectory.txt", "keyframes.txt", "spars
 
 @dataclasses.dataclass
 class ReconstructResult:
-    """What a run produced: the per-frame trajectory, the metrics written to metrics.json, the output folder."""
+    """What a run produced: the per-frame and keyframe trajectories (as trajectory.txt and keyframes.txt hold them, in
+    the exported world), the metrics written to metrics.json, the output folder."""
 
     trajectory: Trajectory
     keyframes: Trajectory
@@ -117,6 +120,7 @@ def reconstruct(
         stride=config.input.stride,
         max_frames=config.input.max_frames,
     )
+    accelerometer = find_accelerometer(sequence.folder) if config.export.world == ExportWorld.upright else None
     read_seconds = time.perf_counter() - read_started
     # config.yaml records the values the run uses: the ORB settings as adapted to this camera's image size.
     config = config_for_camera(config, sequence.camera.width, sequence.camera.height)
@@ -156,27 +160,53 @@ def reconstruct(
             check_tracked(sequence, tracking)
             # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
             peak_memory_tracking_mb = peak_memory_mb()
-            write_tum_trajectory(output_dir / "trajectory.txt", tracking.trajectory)
-            write_tum_trajectory(output_dir / "keyframes.txt", tracking.keyframe_trajectory)
-            write_sparse_map(output_dir / "sparse_map.npz", tracking)
+            gaussians = mesh = None
             if mapping is not None:
                 mapping.finish(tracking.keyframe_poses)
-                with run_log.stage("export"):
-                    save_ply(output_dir / "splats.ply", mapping.map.world_gaussians())
+                gaussians = mapping.map.world_gaussians()
             if config.mesh.enabled:
                 with run_log.stage("mesh"):
-                    write_run_mesh(output_dir / "mesh.ply", sequence, tracking.trajectory, config.mesh, mapping)
+                    mesh = run_mesh(sequence, tracking.trajectory, config.mesh, mapping)
+            with run_log.stage("export"):
+                world = find_world(config.export.world, tracking.trajectory, accelerometer,
+                                   surface_points(mesh, gaussians, tracking), config.seed)
+                write_exports(output_dir, world, tracking, gaussians, mesh)
             if live_view is not None:
                 with run_log.stage("viewer"):
                     log_final_state(live_view, sequence, tracking, mapping)
         metrics, errors = evaluate_run(sequence, config, tracking, mapping, device, run_log, counters,
                                        peak_memory_tracking_mb)
+        metrics.world = WorldMetrics(**world.summary())
         write_run_report(output_dir, metrics, sequence, errors, mapping, tracking.trajectory, counters.gaussian_counts)
         write_metrics(output_dir / "metrics.json", metrics)
         # The run is whole: nothing is left to resume.
         checkpoint_file.unlink(missing_ok=True)
         logger.info("finished in %.1f s", metrics.seconds_total)
-        return ReconstructResult(tracking.trajectory, tracking.keyframe_trajectory, metrics, output_dir)
+        return ReconstructResult(world.trajectory(tracking.trajectory), world.trajectory(tracking.keyframe_trajectory),
+                                 metrics, output_dir)
+
+
+def surface_points(mesh, gaussians, tracking: FrontendResult) -> np.ndarray:
+    """Points (P, 3) on the scene's surfaces (first-camera world) for the plane search of the upright world: the
+    mesh's vertices (even over surfaces) where there is a mesh, else the Gaussians' means, else the frontend's map
+    points (none for Open3D)."""
+    if mesh is not None and len(mesh.vertices):
+        return np.asarray(mesh.vertices, np.float64)
+    if gaussians is not None and len(gaussians):
+        return gaussians.means_m.detach().cpu().numpy().astype(np.float64)
+    return np.asarray(tracking.map_points_world_m, np.float64).reshape(-1, 3)
+
+
+def write_exports(output_dir: Path, world: WorldFrame, tracking: FrontendResult, gaussians, mesh) -> None:
+    """Write trajectory.txt, keyframes.txt, sparse_map.npz, splats.ply and mesh.ply (the last two where given) in
+    ``world``: every pose and point goes through it here, once."""
+    write_tum_trajectory(output_dir / "trajectory.txt", world.trajectory(tracking.trajectory))
+    write_tum_trajectory(output_dir / "keyframes.txt", world.trajectory(tracking.keyframe_trajectory))
+    write_sparse_map(output_dir / "sparse_map.npz", world.frontend_result(tracking))
+    if gaussians is not None:
+        save_ply(output_dir / "splats.ply", world.gaussians(gaussians))
+    if mesh is not None:
+        write_mesh(output_dir / "mesh.ply", world.mesh(mesh))
 
 
 def track_frames(

@@ -20,7 +20,7 @@ from tambridge.errors import ConfigError
 from tambridge.bridge.config import BridgeConfig
 from tambridge.checkpoint import CheckpointConfig
 from tambridge.evaluation.config import EvaluationConfig
-from tambridge.export.config import MeshConfig
+from tambridge.export.config import ExportConfig, MeshConfig
 from tambridge.frontend.config import FrontendConfig
 from tambridge.frontend.orb.config import scaled_for_image
 from tambridge.gaussians.config import MapperConfig
@@ -37,6 +37,7 @@ class Config:
     bridge: BridgeConfig = section(BridgeConfig, "the Fusion Bridge: view selection and pose refinement")
     mapper: MapperConfig = section(MapperConfig, "the online Gaussian mapper")
     mesh: MeshConfig = section(MeshConfig, "the TSDF mesh")
+    export: ExportConfig = section(ExportConfig, "the world frame of the exported files")
     evaluation: EvaluationConfig = section(EvaluationConfig, "the rendering evaluation")
     seed: int = setting(0, "seed of the mapping stage's random choices", NON_NEGATIVE)
     checkpoint: CheckpointConfig = section(CheckpointConfig, "checkpoints for reconstruct --resume")

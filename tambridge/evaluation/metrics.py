@@ -18,7 +18,7 @@ from pathlib import Path
 from tambridge.errors import TambridgeError
 from tambridge.files import atomic_write_text
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 """Bumped whenever a key of metrics.json is added, renamed or removed, or changes meaning."""
 
 OMITTED_WHEN_NONE = {"omitted_when_none": True}
@@ -109,6 +109,17 @@ class DeviceMetrics:
 
 
 @dataclasses.dataclass(kw_only=True)
+class WorldMetrics:
+    """The world of the exported files (:mod:`tambridge.export.world`): ``frame`` (export.world), ``up_source``
+    (accelerometer, floor_plane, wall_planes or first_camera) and ``upright_from_first_camera`` (4 rows of 4), the
+    rotation applied to every exported pose and point."""
+
+    frame: str
+    up_source: str
+    upright_from_first_camera: list[list[float]]
+
+
+@dataclasses.dataclass(kw_only=True)
 class RunMetrics:
     """A finished run's figures (``metrics.json``).
 
@@ -119,6 +130,7 @@ class RunMetrics:
     stage: the stages before the evaluation). Memory: peak resident MiB at the end and after tracking.
     ``warnings``: how many the run logged. ``trajectory``: None without ground truth or where it could not be
     compared, ``trajectory_unavailable`` then says why (None with a trajectory); ``map``: None with the mapper off.
+    ``world``: the frame of the exported files (None only in metrics not made by a run).
     """
 
     sequence: str
@@ -142,6 +154,7 @@ class RunMetrics:
     trajectory_unavailable: str | None
     map: MapMetrics | None = dataclasses.field(default=None, metadata=IN_PARENT)
     device: DeviceMetrics = dataclasses.field(metadata=IN_PARENT)
+    world: WorldMetrics | None = dataclasses.field(default=None, metadata=OMITTED_WHEN_NONE)
 
 
 def metrics_json(metrics: RunMetrics) -> dict:

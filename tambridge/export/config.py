@@ -1,4 +1,4 @@
-"""Settings of the mesh exporter."""
+"""Settings of the exporters: the mesh, and the world frame every exported file is written in."""
 
 from __future__ import annotations
 
@@ -42,3 +42,20 @@ class MeshConfig:
             return (f"truncation_m={self.truncation_m:g} must be larger than voxel_size_m={self.voxel_size_m:g} "
                     f"(3-5 voxels is usual)")
         return None
+
+
+class ExportWorld(Choice):
+    """The world frame of the exported files (:mod:`tambridge.export.world`)."""
+
+    upright = "upright"
+    first_camera = "first_camera"
+
+
+@dataclasses.dataclass
+class ExportConfig:
+    """The world of trajectory.txt, keyframes.txt, sparse_map.npz, splats.ply and mesh.ply (and so of ``tambridge
+    export``'s COLMAP and nerfstudio folders); the run itself always works in the first camera's frame."""
+
+    world: ExportWorld = setting(ExportWorld.upright, "frame of the exported files: upright (z up, gravity from "
+                                                      "accelerometer.txt, else from the floor or wall planes) or "
+                                                      "first_camera (the first camera's OpenCV frame, y down)")

@@ -169,8 +169,8 @@ def convert_mesh(source: Path, target: Path, format: str | None = None) -> trime
     return mesh
 
 
-def write_run_mesh(path: Path, sequence: RgbdSequence, trajectory: Trajectory, config: MeshConfig,
-                   mapping: MappingStage | None) -> None:
+def run_mesh(sequence: RgbdSequence, trajectory: Trajectory, config: MeshConfig,
+             mapping: MappingStage | None) -> trimesh.Trimesh:
     """TSDF mesh of every ``frame_stride``-th frame at its final pose; ``source=rendered`` fuses the
     map's rendered depth (at the mapping resolution, from the rendering poses) instead of the sensor's."""
     source = config.source
@@ -182,4 +182,4 @@ def write_run_mesh(path: Path, sequence: RgbdSequence, trajectory: Trajectory, c
         if source == MeshSource.rendered:
             logger.warning("mesh.source=rendered but no Gaussian map was built (mapper.enabled=false?): fusing sensor depth")
         views, camera = sensor_views(sequence, trajectory.world_from_camera, stride), sequence.camera
-    write_mesh(path, fuse_tsdf_mesh(views, camera, config))
+    return fuse_tsdf_mesh(views, camera, config)

@@ -235,6 +235,8 @@ class SynthOptions:
     # The ground truth is the depth camera's; camera.yaml gets the colour_* keys. 0 and 1: one registered camera.
     colour_baseline_m: float = 0.0
     colour_focal_scale: float = 1.0
+    # Every camera turned about its optical axis by this (degrees), as a handheld camera held askew.
+    roll_deg: float = 0.0
 
     @property
     def registered(self) -> bool:
@@ -265,6 +267,11 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
     scene = make_room_scene(options.seed)
     camera = default_camera(options.width, options.height)
     world_from_camera = loop_path(options.frame_count)
+    if options.roll_deg:
+        angle = np.radians(options.roll_deg)
+        # The camera's x and y axes turn by the angle about its z: the image turns the other way.
+        world_from_camera[:, :3, :2] = world_from_camera[:, :3, :2] @ np.array([[np.cos(angle), np.sin(angle)],
+                                                                                [-np.sin(angle), np.cos(angle)]])
     timestamps = np.arange(options.frame_count) / options.fps
     rgb_lines, depth_lines = ["# timestamp filename"], ["# timestamp filename"]
     colour_camera = options.colour_camera(camera)

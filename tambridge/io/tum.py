@@ -1,4 +1,5 @@
-"""Reader of RGB-D sequences in the TUM layout: ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt``.
+"""Reader of RGB-D sequences in the TUM layout: ``rgb.txt``, ``depth.txt``, optional ``groundtruth.txt`` and
+``accelerometer.txt``.
 
 Colour and depth are associated by nearest timestamp (greedy, as TUM's ``associate.py``); frames load
 lazily, one at a time, so a sequence of any length costs the memory of a frame.
@@ -303,6 +304,53 @@ def open_sequence(
     if check_depth_scale:
         check_depth_scale_plausible(sequence)
     return sequence
+
+
+ACCELEROMETER_FILE = "accelerometer.txt"
+
+
+KINECT_CAMERA_FROM_ACCELEROMETER = np.diag([-1.0, -1.0, 1.0])
+"""The Kinect's accelerometer axes in our (OpenCV) camera axes: its x points to the camera's left, y up, z forward.
+Its reading is the specific force: at rest it points up, about 9.8 m/s^2 (checked against TUM's motion capture,
+docs/export.md)."""
+
+
+@dataclasses.dataclass
+class AccelerometerSamples:
+    """TUM's ``accelerometer.txt``: ``timestamps_s`` (N,) increasing and ``acceleration_mps2`` (N, 3) m/s^2, in the
+    sensor's own axes (:data:`KINECT_CAMERA_FROM_ACCELEROMETER`)."""
+
+    timestamps_s: np.ndarray
+    acceleration_mps2: np.ndarray
+
+
+def read_accelerometer(path: Path) -> AccelerometerSamples:
+    """Parse ``timestamp ax ay az`` lines (``#`` comments); errors name the file and line."""
+    rows = []
+    for number, line in enumerate(read_text_file(path, SequenceFormatError).splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            values = [float(part) for part in parts]
+        except ValueError:
+            values = []
+        if len(values) != 4 or not np.all(np.isfinite(values)):
+            raise SequenceFormatError(f"{path} line {number}: expected 4 numbers 'timestamp ax ay az', got {line!r}; "
+                                      f"fix the line or remove {path.name} (up then comes from the map's planes)")
+        rows.append(values)
+    if not rows:
+        raise SequenceFormatError(f"{path}: no samples; remove the file (up then comes from the map's planes)")
+    rows = np.array(rows)
+    rows = rows[np.argsort(rows[:, 0], kind="stable")]
+    return AccelerometerSamples(rows[:, 0], rows[:, 1:4])
+
+
+def find_accelerometer(folder: Path) -> AccelerometerSamples | None:
+    """The samples of ``folder/accelerometer.txt``, or None where the sequence has none."""
+    path = Path(folder) / ACCELEROMETER_FILE
+    return read_accelerometer(path) if path.exists() else None
 
 
 DEPTH_CHECK_FRAMES = 30
