@@ -76,7 +76,7 @@ class OrbFrontendConfig:
                                                       "have no residual (m)", POSITIVE)
     dense_reference_stride_px: int = setting(4, "the keyframe's vertex and normal maps take every n-th pixel",
                                              at_least(1))
-    dense_sample_stride_px: int = setting(8, "the frame's depth samples take every n-th pixel", at_least(1))
+    dense_sample_stride_px: int = setting(16, "the frame's depth samples take every n-th pixel", at_least(1))
     dense_auto_max_matches: int = setting(150, "auto: the term is added when fewer map points than this are "
                                                "matched ...", NON_NEGATIVE)
     dense_auto_min_rotation_deg: float = setting(1.0, "... or the motion prior turns by more than this per frame "

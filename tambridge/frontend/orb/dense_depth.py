@@ -63,14 +63,12 @@ class DenseTerm:
         return self.weight / max(1, len(self.samples_camera_m))
 
 
-def _valid_depth(depth_m: np.ndarray, min_depth_m: float, max_depth_m: float) -> np.ndarray:
-    return np.isfinite(depth_m) & (depth_m >= min_depth_m) & (depth_m <= max_depth_m)
-
-
-def _backproject_grid(depth_m: np.ndarray, K: np.ndarray, stride: int) -> np.ndarray:
-    """(h, w, 3) camera-frame points of every ``stride``-th pixel of ``depth_m`` (H, W) (zero depth -> zero point)."""
+def _backproject_grid(depth_m: np.ndarray, K: np.ndarray, stride: int, min_depth_m: float, max_depth_m: float) -> np.ndarray:
+    """(h, w, 3) camera-frame points of every ``stride``-th pixel of ``depth_m`` (H, W); zero where the depth is
+    missing or outside ``[min_depth_m, max_depth_m]``."""
+    z = depth_m[::stride, ::stride].astype(np.float64)
+    z = np.where(np.isfinite(z) & (z >= min_depth_m) & (z <= max_depth_m), z, 0.0)
     rows, columns = np.mgrid[0:depth_m.shape[0]:stride, 0:depth_m.shape[1]:stride]
-    z = depth_m[rows, columns]
     x, y = pinhole_ray(columns.astype(np.float64), rows.astype(np.float64), K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     return np.stack([x * z, y * z, z], axis=-1)
 
@@ -79,8 +77,7 @@ def dense_reference(keyframe_id: int, depth_m: np.ndarray, K: np.ndarray, stride
                     min_depth_m: float, max_depth_m: float) -> DenseReference:
     """Vertex and normal maps of a keyframe's depth (H, W) in metres; normals by central differences over the
     grid's neighbours, facing the camera."""
-    depth = np.where(_valid_depth(depth_m, min_depth_m, max_depth_m), depth_m, 0.0).astype(np.float64)
-    points = _backproject_grid(depth, K, stride)
+    points = _backproject_grid(depth_m, K, stride, min_depth_m, max_depth_m)
     z = points[..., 2]
     normals = np.zeros_like(points)
     dx = points[1:-1, 2:] - points[1:-1, :-2]
@@ -100,8 +97,7 @@ def dense_reference(keyframe_id: int, depth_m: np.ndarray, K: np.ndarray, stride
 
 def dense_samples(depth_m: np.ndarray, K: np.ndarray, stride: int, min_depth_m: float, max_depth_m: float) -> np.ndarray:
     """(M, 3) camera-frame points of the valid depths (H, W) on every ``stride``-th pixel."""
-    depth = np.where(_valid_depth(depth_m, min_depth_m, max_depth_m), depth_m, 0.0).astype(np.float64)
-    points = _backproject_grid(depth, K, stride).reshape(-1, 3)
+    points = _backproject_grid(depth_m, K, stride, min_depth_m, max_depth_m).reshape(-1, 3)
     return np.ascontiguousarray(points[points[:, 2] > 0])
 
 
