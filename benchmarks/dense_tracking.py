@@ -116,7 +116,7 @@ def depth_stamp_s(sequence, frame) -> float:
         return frame.timestamp_s
 
 
-def time_offset_scan(estimate, ground_truth, offsets_ms=range(-40, 45, 5)) -> dict:
+def time_offset_scan(estimate, ground_truth, offsets_ms=range(-100, 110, 10)) -> dict:
     """ATE (cm) of ``estimate`` against the ground truth interpolated at the frame times shifted by each offset:
     a minimum away from 0 is a clock offset between the camera and the motion capture."""
     from tambridge.evaluation.trajectory import evaluate_trajectory

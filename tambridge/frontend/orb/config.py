@@ -66,7 +66,7 @@ class OrbFrontendConfig:
     min_inliers: int = setting(30, "least PnP inliers of a tracked frame", at_least(4))
     relocalisation_min_inliers: int = setting(50, "least PnP inliers of a relocalised frame", at_least(4))
     # Dense point-to-plane depth term against the last keyframe's depth (tambridge/frontend/orb/dense_depth.py).
-    dense_depth: DenseDepthUse = setting(DenseDepthUse.auto, "add the point-to-plane depth term to motion-only "
+    dense_depth: DenseDepthUse = setting(DenseDepthUse.always, "add the point-to-plane depth term to motion-only "
                                          "refinement: off, auto (few matches or fast turns) or always")
     dense_depth_weight: float = setting(100.0, "total weight of the depth term, in whitened residuals (its samples "
                                                "share it, so ORB's matches lead where they are many)", POSITIVE)
