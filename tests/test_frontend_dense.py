@@ -125,7 +125,7 @@ def test_few_matches_and_depth_refine_better_than_the_matches_alone(views):
 @pytest.mark.slow
 def test_fast_rotation_bursts_are_tracked(tmp_path):
     """Two bursts of 120 deg/s tilts (4 degrees a frame, with motion blur) on the synthetic loop: tracked with the
-    default settings (the depth term on) within the issue's bounds of ATE and largest error."""
+    default settings (the depth term where matches are few or the turn is fast) within the issue's bounds of ATE and largest error."""
     folder = tmp_path / "bursts"
     write_synthetic_sequence(folder, SynthOptions(
         frame_count=60, width=160, height=120, exposure_s=0.01, blur_subframes=3,
@@ -135,7 +135,8 @@ def test_fast_rotation_bursts_are_tracked(tmp_path):
     results = [frontend.track(frame) for frame in sequence]
     final = frontend.finish()
     assert all(result.tracked for result in results)
-    assert frontend.frames_with_dense_depth == len(sequence) - 1
+    # auto: the term is on in the bursts (and wherever the small image leaves few matches).
+    assert 0 < frontend.frames_with_dense_depth < len(sequence)
     errors = evaluate_trajectory(final.trajectory, sequence.ground_truth, align="se3")
     assert errors.ate_rmse_m < 0.017
     assert errors.ate_max_m < 0.05

@@ -66,9 +66,11 @@ class OrbFrontendConfig:
     min_inliers: int = setting(30, "least PnP inliers of a tracked frame", at_least(4))
     relocalisation_min_inliers: int = setting(50, "least PnP inliers of a relocalised frame", at_least(4))
     # Dense point-to-plane depth term against the last keyframe's depth (tambridge/frontend/orb/dense_depth.py).
-    dense_depth: DenseDepthUse = setting(DenseDepthUse.always, "add the point-to-plane depth term to motion-only "
+    # auto, not always: always cost accuracy on fr1/xyz's first 37 frames while it helped in fast turns
+    # (docs/benchmarks.md).
+    dense_depth: DenseDepthUse = setting(DenseDepthUse.auto, "add the point-to-plane depth term to motion-only "
                                          "refinement: off, auto (few matches or fast turns) or always")
-    dense_depth_weight: float = setting(100.0, "total weight of the depth term, in whitened residuals (its samples "
+    dense_depth_weight: float = setting(300.0, "total weight of the depth term, in whitened residuals (its samples "
                                                "share it, so ORB's matches lead where they are many)", POSITIVE)
     dense_depth_noise_per_m: float = setting(0.0025, "k of the depth term's sigma_z = k z^2 at each end (1/m)", POSITIVE)
     dense_depth_huber_sigmas: float = setting(2.0, "Huber threshold of the depth term (sigmas)", POSITIVE)
@@ -79,8 +81,8 @@ class OrbFrontendConfig:
     dense_sample_stride_px: int = setting(16, "the frame's depth samples take every n-th pixel", at_least(1))
     dense_auto_max_matches: int = setting(150, "auto: the term is added when fewer map points than this are "
                                                "matched ...", NON_NEGATIVE)
-    dense_auto_min_rotation_deg: float = setting(1.0, "... or the motion prior turns by more than this per frame "
-                                                      "(degrees)", NON_NEGATIVE)
+    dense_auto_min_rotation_deg: float = setting(2.0, "... or the motion prior turns by more than this per frame "
+                                                      "(degrees; 2 = 60 deg/s at 30 frames/s)", NON_NEGATIVE)
     # Keyframe insertion as ORB-SLAM2's.
     keyframe_tracked_ratio: float = setting(0.75, "a frame tracking fewer than this share of its reference keyframe's "
                                                   "points may become a keyframe", UNIT)
