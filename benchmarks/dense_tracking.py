@@ -1,8 +1,8 @@
-"""The dense point-to-plane depth term of ORB tracking (``dense_depth`` off / auto / always) on real and synthetic
+"""The dense point-to-plane depth term of ORB tracking (``dense_depth`` never / auto / always) on real and synthetic
 segments: ATE, RPE, the largest error, tracking frames/s, and the term's own cost per frame.
 
     python benchmarks/dense_tracking.py                                   # every segment below
-    python benchmarks/dense_tracking.py --segments fr1_xyz_0-300 --modes off auto
+    python benchmarks/dense_tracking.py --segments fr1_xyz_0-300 --modes never auto
 
 Tracking only (the ORB frontend with the default settings: loop closure, global BA, mapping thread), no
 Gaussian mapping. frames/s counts the time inside ``track`` and ``finish``; under shared CPUs compare the modes'
@@ -43,7 +43,7 @@ SEGMENTS = {
     "7scenes_450-550": dict(**KITCHEN, start=450, end=550),
     "7scenes_0-699": dict(**KITCHEN, start=0, end=None),
 }
-MODES = ("off", "auto", "always")
+MODES = ("never", "auto", "always")
 
 
 def track_segment(frames, sequence, mode: str, overrides: dict, trajectory_path: Path | None = None):

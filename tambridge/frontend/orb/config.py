@@ -12,7 +12,7 @@ from tambridge.settings import FRACTION, NON_NEGATIVE, POSITIVE, UNIT, Choice, R
 class DenseDepthUse(Choice):
     """When motion-only refinement adds the point-to-plane depth term (tambridge/frontend/orb/dense_depth.py)."""
 
-    off = "off"
+    never = "never"
     auto = "auto"  # where matches are few or the predicted motion turns fast
     always = "always"
 
@@ -69,7 +69,7 @@ class OrbFrontendConfig:
     # auto, not always: always cost accuracy on fr1/xyz's first 37 frames while it helped in fast turns
     # (docs/benchmarks.md).
     dense_depth: DenseDepthUse = setting(DenseDepthUse.auto, "add the point-to-plane depth term to motion-only "
-                                         "refinement: off, auto (few matches or fast turns) or always")
+                                         "refinement: never, auto (few matches or fast turns) or always")
     dense_depth_weight: float = setting(300.0, "total weight of the depth term, in whitened residuals (its samples "
                                                "share it, so ORB's matches lead where they are many)", POSITIVE)
     dense_depth_noise_per_m: float = setting(0.0025, "k of the depth term's sigma_z = k z^2 at each end (1/m)", POSITIVE)

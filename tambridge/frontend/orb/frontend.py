@@ -231,7 +231,7 @@ class OrbFrontend:
         (auto: fewer than ``dense_auto_max_matches`` matches or a motion prior turning fast); else None."""
         config = self.config
         reference = self._dense_reference
-        if config.dense_depth == DenseDepthUse.off or reference is None:
+        if config.dense_depth == DenseDepthUse.never or reference is None:
             return None
         if config.dense_depth == DenseDepthUse.auto:
             cos_angle = np.clip((np.trace(self._motion[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
@@ -393,7 +393,7 @@ class OrbFrontend:
         self.map.keyframes.append(keyframe)
         self.map.points.observations[fix.point_ids[good]] += 1
         create_points_from_depth(self.map, keyframe, self.config)
-        if self.config.dense_depth != DenseDepthUse.off:
+        if self.config.dense_depth != DenseDepthUse.never:
             with self._timed("pnp"):
                 self._dense_reference = dense_reference(keyframe.id, frame.depth_m, self.K, self.config.dense_reference_stride_px,
                                                         self.config.min_depth_m, self.config.max_depth_m)
