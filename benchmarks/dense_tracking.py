@@ -77,7 +77,12 @@ def track_segment(frames, sequence, mode: str, overrides: dict, trajectory_path:
 def term_cost(frames, sequence) -> dict:
     """Milliseconds of the term's parts, medians over the segment's frames against the first frame's depth."""
     from tambridge.frontend.orb.config import OrbFrontendConfig, scaled_for_image
-    from tambridge.frontend.orb.dense_depth import DenseTerm, dense_normal_equations, dense_reference, dense_samples
+    from tambridge.frontend.orb.dense_depth import (
+        DenseTerm,
+        dense_normal_equations,
+        dense_reference,
+        dense_samples,
+    )
 
     config = scaled_for_image(OrbFrontendConfig(), sequence.camera.width, sequence.camera.height)
     K = sequence.camera.K
@@ -143,8 +148,13 @@ def depth_fit(frames, sequence, estimate, gap: int = 1, step: int = 10) -> dict:
     the translation (mm) between the ground truth's relative pose and that optimum, whose RMS is the floor of an
     RPE that fits the depth best."""
     from tambridge.frontend.orb.config import OrbFrontendConfig, scaled_for_image
-    from tambridge.frontend.orb.dense_depth import (DenseTerm, dense_normal_equations, dense_reference,
-                                                    dense_residuals_reference, dense_samples)
+    from tambridge.frontend.orb.dense_depth import (
+        DenseTerm,
+        dense_normal_equations,
+        dense_reference,
+        dense_residuals_reference,
+        dense_samples,
+    )
     from tambridge.geometry import exp_se3, inverse
 
     config = scaled_for_image(OrbFrontendConfig(), sequence.camera.width, sequence.camera.height)
@@ -164,7 +174,7 @@ def depth_fit(frames, sequence, estimate, gap: int = 1, step: int = 10) -> dict:
         term = DenseTerm(reference, np.eye(4), samples, K, 1.0, config.dense_depth_noise_per_m,
                          config.dense_depth_huber_sigmas, config.dense_depth_max_distance_m)
 
-        def median_mm(b_from_a):
+        def median_mm(b_from_a, term=term):
             residual, _, associated, _ = dense_residuals_reference(b_from_a, term)
             return 1e3 * float(np.median(np.abs(residual[associated])))
 

@@ -16,11 +16,20 @@ from tambridge.frontend.orb.dense_depth import (
     dense_samples,
 )
 from tambridge.frontend.orb.frontend import OrbFrontend
-from tambridge.frontend.orb.pose_estimation import refine_camera_from_world, refine_camera_from_world_reference
+from tambridge.frontend.orb.pose_estimation import (
+    refine_camera_from_world,
+    refine_camera_from_world_reference,
+)
 from tambridge.frontend.orb.reprojection import rgbd_observations
 from tambridge.geometry import exp_se3, inverse, look_at, transform_points
-from tambridge.io.synthetic import (RotationBursts, SynthOptions, default_camera, make_room_scene, render,
-                                    write_synthetic_sequence)
+from tambridge.io.synthetic import (
+    RotationBursts,
+    SynthOptions,
+    default_camera,
+    make_room_scene,
+    render,
+    write_synthetic_sequence,
+)
 from tambridge.io.tum import open_sequence
 
 CAMERA = default_camera(80, 60)
