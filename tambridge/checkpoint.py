@@ -175,6 +175,7 @@ def state_types() -> StateTypes:
     from tambridge.bridge.view import MappingView
     from tambridge.bridge.view_selection import Selection
     from tambridge.frontend.open3d.frontend import _Keyframe as Open3dKeyframe
+    from tambridge.frontend.orb.dense_depth import DenseReference
     from tambridge.frontend.orb.features import FrameFeatures
     from tambridge.frontend.orb.frontend import _FrameRecord
     from tambridge.frontend.orb.loop_closing import LoopConsistency
@@ -200,7 +201,7 @@ def state_types() -> StateTypes:
         return value
 
     return StateTypes(
-        records=(Keyframe, FrameFeatures, MapPoints, SlamMap, KeyframeDatabase, LoopConsistency, _FrameRecord,
+        records=(Keyframe, FrameFeatures, MapPoints, SlamMap, KeyframeDatabase, LoopConsistency, _FrameRecord, DenseReference,
                  Open3dKeyframe, PoseEdge, MappingView, RefinementResult, ViewImages),
         enums=(Selection,),
         codecs=(

@@ -6,7 +6,15 @@ import dataclasses
 
 import numpy as np
 
-from tambridge.settings import FRACTION, NON_NEGATIVE, POSITIVE, UNIT, Range, at_least, setting
+from tambridge.settings import FRACTION, NON_NEGATIVE, POSITIVE, UNIT, Choice, Range, at_least, setting
+
+
+class DenseDepthUse(Choice):
+    """When motion-only refinement adds the point-to-plane depth term (tambridge/frontend/orb/dense_depth.py)."""
+
+    never = "never"
+    auto = "auto"  # where matches are few or the predicted motion turns fast
+    always = "always"
 
 
 @dataclasses.dataclass
@@ -57,6 +65,24 @@ class OrbFrontendConfig:
     pnp_iterations: int = setting(60, "PnP-RANSAC iterations", at_least(1))
     min_inliers: int = setting(30, "least PnP inliers of a tracked frame", at_least(4))
     relocalisation_min_inliers: int = setting(50, "least PnP inliers of a relocalised frame", at_least(4))
+    # Dense point-to-plane depth term against the last keyframe's depth (tambridge/frontend/orb/dense_depth.py).
+    # auto, not always: always cost accuracy on fr1/xyz's first 37 frames while it helped in fast turns
+    # (docs/benchmarks.md).
+    dense_depth: DenseDepthUse = setting(DenseDepthUse.auto, "add the point-to-plane depth term to motion-only "
+                                         "refinement: never, auto (few matches or fast turns) or always")
+    dense_depth_weight: float = setting(300.0, "total weight of the depth term, in whitened residuals (its samples "
+                                               "share it, so ORB's matches lead where they are many)", POSITIVE)
+    dense_depth_noise_per_m: float = setting(0.0025, "k of the depth term's sigma_z = k z^2 at each end (1/m)", POSITIVE)
+    dense_depth_huber_sigmas: float = setting(2.0, "Huber threshold of the depth term (sigmas)", POSITIVE)
+    dense_depth_max_distance_m: float = setting(0.05, "depth samples farther than this from the keyframe's surface "
+                                                      "have no residual (m)", POSITIVE)
+    dense_reference_stride_px: int = setting(4, "the keyframe's vertex and normal maps take every n-th pixel",
+                                             at_least(1))
+    dense_sample_stride_px: int = setting(16, "the frame's depth samples take every n-th pixel", at_least(1))
+    dense_auto_max_matches: int = setting(150, "auto: the term is added when fewer map points than this are "
+                                               "matched ...", NON_NEGATIVE)
+    dense_auto_min_rotation_deg: float = setting(2.0, "... or the motion prior turns by more than this per frame "
+                                                      "(degrees; 2 = 60 deg/s at 30 frames/s)", NON_NEGATIVE)
     # Keyframe insertion as ORB-SLAM2's.
     keyframe_tracked_ratio: float = setting(0.75, "a frame tracking fewer than this share of its reference keyframe's "
                                                   "points may become a keyframe", UNIT)
@@ -116,7 +142,7 @@ def scaled_for_image(config: OrbFrontendConfig, width: int, height: int) -> OrbF
     With the linear size ratio ``s = sqrt(area / 640x480)``, the feature budget, the border and the grid cell
     scale by ``sqrt(s)``: a smaller image holds fewer distinct corners, but ORB's 31 px patch does not shrink with
     it, so they cannot scale with the area (at 160x120: 750 features, a 10 px border, 16 px cells, close to the
-    values tuned by hand for the synthetic tests). The pyramid keeps levels while the short side stays at or above
+    values tuned by hand for the synthetic tests); the depth term's pixel strides scale by ``s``. The pyramid keeps levels while the short side stays at or above
     MIN_PYRAMID_SIDE_PX (4 levels at 160x120). Error thresholds in pixels stay as they are (keypoint noise is
     about a pixel at any size), and so do the keyframe point counts: scaled down, they gave fewer keyframes and a
     worse trajectory on the 160x120 synthetic loop (docs/benchmarks.md).
@@ -132,4 +158,7 @@ def scaled_for_image(config: OrbFrontendConfig, width: int, height: int) -> OrbF
         n_levels=max(1, min(config.n_levels, levels_that_fit)),
         edge_threshold_px=scale(config.edge_threshold_px, 4),
         grid_cell_px=scale(config.grid_cell_px, 8),
+        # The depth term's grids keep their share of the image.
+        dense_reference_stride_px=max(1, int(round(config.dense_reference_stride_px * factor * factor))),
+        dense_sample_stride_px=max(1, int(round(config.dense_sample_stride_px * factor * factor))),
     )

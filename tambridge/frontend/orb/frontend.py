@@ -51,13 +51,14 @@ from tambridge.frontend.orb.local_mapping import (
     local_bundle_adjustment,
 )
 from tambridge.frontend.orb.loop_closing import LoopConsistency, close_loop, detect_loop
+from tambridge.frontend.orb.dense_depth import DenseReference, DenseTerm, dense_reference, dense_samples
 from tambridge.frontend.orb.map_matching import PoseFix, localise, match_map_points, refine_with_matches
 from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.orb.features import FrameFeatures, OrbExtractor
 from tambridge.frontend.orb.pose_estimation import solve_pnp_ransac
 from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 from tambridge.frontend.contract import FrontendResult, KeyframeEvent, MapPointObservations, TrackResult, empty_timings
-from tambridge.frontend.orb.config import OrbFrontendConfig, scaled_for_image
+from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, scaled_for_image
 from tambridge.frontend.orb.vocabulary import KeyframeDatabase, Vocabulary
 from tambridge.geometry import inverse
 from tambridge.io.tum import Frame
@@ -111,6 +112,9 @@ class OrbFrontend:
         self._last: _FrameRecord | None = None
         self._motion = np.eye(4)  # current_from_previous camera motion: the constant-velocity prior
         self._reference: Keyframe | None = None
+        # The last keyframe's depth, for the dense depth term (None with dense_depth off or before the first).
+        self._dense_reference: DenseReference | None = None
+        self.frames_with_dense_depth = 0
         self._frames_since_keyframe = 0
         self._keyframe_requested = False
         self._lost_streak = 0
@@ -176,7 +180,7 @@ class OrbFrontend:
         predicted = self._motion @ camera_from_world_last
         grid = build_keypoint_grid(features.keypoints_px, self.camera.width, self.camera.height)
         radius_scale = 2.0 if self._lost_streak else 1.0
-        fix, in_view = self._track_local_map(features, grid, predicted, radius_scale)
+        fix, in_view = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m)
         relocalised = False
         if fix is None or fix.inlier_count < self.config.min_inliers:
             relocalisation = self._relocalise(features, grid)
@@ -222,10 +226,30 @@ class OrbFrontend:
             keyframe=keyframe_event,
         )
 
+    def _dense_term(self, depth_m: np.ndarray | None, matches: int) -> DenseTerm | None:
+        """The point-to-plane depth term against the last keyframe's depth, where ``dense_depth`` asks for it
+        (auto: fewer than ``dense_auto_max_matches`` matches or a motion prior turning fast); else None."""
+        config = self.config
+        reference = self._dense_reference
+        if config.dense_depth == DenseDepthUse.never or reference is None:
+            return None
+        if config.dense_depth == DenseDepthUse.auto:
+            cos_angle = np.clip((np.trace(self._motion[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+            if matches >= config.dense_auto_max_matches and np.degrees(np.arccos(cos_angle)) <= config.dense_auto_min_rotation_deg:
+                return None
+        with self._timed("pnp"):
+            samples = dense_samples(depth_m, self.K, config.dense_sample_stride_px, config.min_depth_m, config.max_depth_m)
+        self.frames_with_dense_depth += 1
+        return DenseTerm(reference, self.map.keyframes[reference.keyframe_id].camera_from_world, samples, self.K,
+                         config.dense_depth_weight, config.dense_depth_noise_per_m, config.dense_depth_huber_sigmas,
+                         config.dense_depth_max_distance_m)
+
     def _track_local_map(
-        self, features: FrameFeatures, grid, predicted: np.ndarray, radius_scale: float
+        self, features: FrameFeatures, grid, predicted: np.ndarray, radius_scale: float,
+        depth_m: np.ndarray | None = None,
     ) -> tuple[PoseFix | None, np.ndarray]:
-        """Two projection searches of the local map (wide with the prior, tight with the refined pose)."""
+        """Two projection searches of the local map (wide with the prior, tight with the refined pose), each
+        followed by motion-only refinement (with the dense depth term of ``depth_m`` where it is used)."""
         config = self.config
         local = self.map.local_keyframes(self._reference, config.local_map_keyframes)
         point_ids = self.map.points_of(local)
@@ -234,15 +258,17 @@ class OrbFrontend:
                                                  radius_scale * config.search_radius_px)
         if len(ids) < config.min_inliers // 2:
             return None, np.zeros(0, np.int64)
+        dense = self._dense_term(depth_m, len(ids))
         with self._timed("pnp"):
             # As ORB-SLAM's TrackWithMotionModel: refine from the prior; PnP-RANSAC (about a third of the
             # tracking time) only when the prior leaves too many matches as outliers.
-            fix = refine_with_matches(predicted, features, keypoints, ids, self.map, self.K, config)
+            fix = refine_with_matches(predicted, features, keypoints, ids, self.map, self.K, config, dense)
             if fix.inlier_count < max(config.min_inliers, PRIOR_MIN_INLIER_FRACTION * len(ids)):
                 camera_from_world, _ = solve_pnp_ransac(self.map.points.positions_m[ids], features.keypoints_px[keypoints],
                                                         self.K, predicted, config.pnp_reprojection_px, config.pnp_iterations)
                 if camera_from_world is not None:
-                    ransac_fix = refine_with_matches(camera_from_world, features, keypoints, ids, self.map, self.K, config)
+                    ransac_fix = refine_with_matches(camera_from_world, features, keypoints, ids, self.map, self.K, config,
+                                                     dense)
                     fix = ransac_fix if ransac_fix.inlier_count > fix.inlier_count else fix
         with self._timed("matching"):
             keypoints, ids, in_view = match_map_points(self.map, point_ids, fix.camera_from_world, features, grid,
@@ -250,7 +276,7 @@ class OrbFrontend:
         if len(ids) < config.min_inliers // 2:
             return fix, in_view
         with self._timed("pnp"):
-            refined = refine_with_matches(fix.camera_from_world, features, keypoints, ids, self.map, self.K, config)
+            refined = refine_with_matches(fix.camera_from_world, features, keypoints, ids, self.map, self.K, config, dense)
         return refined, in_view
 
     def _relocalise(self, features: FrameFeatures, grid) -> tuple[PoseFix, np.ndarray] | None:
@@ -367,6 +393,10 @@ class OrbFrontend:
         self.map.keyframes.append(keyframe)
         self.map.points.observations[fix.point_ids[good]] += 1
         create_points_from_depth(self.map, keyframe, self.config)
+        if self.config.dense_depth != DenseDepthUse.never:
+            with self._timed("pnp"):
+                self._dense_reference = dense_reference(keyframe.id, frame.depth_m, self.K, self.config.dense_reference_stride_px,
+                                                        self.config.min_depth_m, self.config.max_depth_m)
         self.map.update_covisibility(keyframe, self.config.covisibility_min_shared)
         self._reference = keyframe
         self._frames_since_keyframe = 0

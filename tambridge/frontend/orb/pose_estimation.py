@@ -7,6 +7,12 @@ import numba
 import numpy as np
 
 from tambridge.camera import pinhole_inverse_depth_numba
+from tambridge.frontend.orb.dense_depth import (
+    DenseTerm,
+    dense_normal_equations_numba,
+    dense_normal_equations_reference,
+    kernel_arguments,
+)
 from tambridge.frontend.orb.reprojection import (
     MIN_DEPTH_M,
     chi2_thresholds,
@@ -132,7 +138,9 @@ def pose_normal_equations_reference(camera_from_world, points_world, observation
 
 @numba.njit(cache=True, nogil=True)
 def _refine_camera_from_world_kernel(camera_from_world, points_world, observations, weights, thresholds, rounds,
-                                     iterations, fx, fy, cx, cy):
+                                     iterations, fx, fy, cx, cy, reference_from_world, samples, reference_points,
+                                     normals, stride, dense_fx, dense_fy, dense_cx, dense_cy, sample_weight, noise,
+                                     huber, max_distance):
     n = points_world.shape[0]
     inliers = np.ones(n, np.bool_)
     none_active = np.zeros(n, np.bool_)
@@ -144,6 +152,12 @@ def _refine_camera_from_world_kernel(camera_from_world, points_world, observatio
             hessian, gradient, _ = _pose_normal_equations(
                 np.ascontiguousarray(camera_from_world[:3, :3]), np.ascontiguousarray(camera_from_world[:3, 3]),
                 points_world, observations, weights, thresholds, inliers, robust, fx, fy, cx, cy)
+            if samples.shape[0] > 0:
+                dense_hessian, dense_gradient, _, _ = dense_normal_equations_numba(
+                    camera_from_world, reference_from_world, samples, reference_points, normals, stride,
+                    dense_fx, dense_fy, dense_cx, dense_cy, sample_weight, noise, huber, max_distance)
+                hessian = hessian + dense_hessian
+                gradient = gradient + dense_gradient
             try:
                 delta = -np.linalg.solve(hessian + 1e-9 * np.eye(6), gradient)
             except Exception:  # noqa: BLE001 - numba catches no narrower class; a singular system ends the round
@@ -169,13 +183,16 @@ def refine_camera_from_world(
     depth_noise_per_m: float,
     rounds: int = 4,
     iterations: int = 10,
+    dense: DenseTerm | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Motion-only refinement: Gauss-Newton on the Huber-robust RGB-D reprojection error (ORB-SLAM's PoseOptimization).
 
     ``points_world`` (N, 3) are fixed; ``observations`` (N, 3) are ``(u, v, 1/z)`` (see
     :mod:`~tambridge.frontend.orb.reprojection`); ``inv_sigma2`` (N,); ``depth_noise_per_m`` k of sigma_z = k z^2
     (0: no depth rows). Each round optimises over the current inliers, then re-classifies every match by its
-    chi2 (95% quantile); the last round drops the Huber kernel. Returns ``(camera_from_world 4x4, inliers (N,))``.
+    chi2 (95% quantile); the last round drops the Huber kernel. ``dense`` adds the point-to-plane depth term of
+    :mod:`~tambridge.frontend.orb.dense_depth` to every Gauss-Newton step (it keeps its Huber kernel; it does
+    not take part in the inlier classification). Returns ``(camera_from_world 4x4, inliers (N,))``.
     The whole loop runs in one numba kernel (it runs twice per tracked frame, and the Python around each
     Gauss-Newton step cost more than the step); :func:`refine_camera_from_world_reference` is its slow twin.
     """
@@ -184,6 +201,7 @@ def refine_camera_from_world(
         np.array(camera_from_world, np.float64), np.ascontiguousarray(points_world, np.float64),
         np.ascontiguousarray(observations, np.float64), np.ascontiguousarray(weights, np.float64),
         np.ascontiguousarray(chi2_thresholds(weights), np.float64), rounds, iterations, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
+        *kernel_arguments(dense),
     )
     # Frame poses chain (prior = motion @ previous pose): keep the rounding of exp products off SO(3) from growing.
     return orthonormalised(camera_from_world), inliers
@@ -198,6 +216,7 @@ def refine_camera_from_world_reference(
     depth_noise_per_m: float,
     rounds: int = 4,
     iterations: int = 10,
+    dense: DenseTerm | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Slow twin of :func:`refine_camera_from_world`: the same loop in Python over :func:`pose_normal_equations_reference`."""
     weights = row_weights(observations, inv_sigma2, depth_noise_per_m)
@@ -210,6 +229,9 @@ def refine_camera_from_world_reference(
                 break
             hessian, gradient, _ = pose_normal_equations_reference(camera_from_world, points_world, observations, weights,
                                                                    thresholds, inliers, robust, K)
+            if dense is not None and len(dense.samples_camera_m):
+                dense_hessian, dense_gradient, _, _ = dense_normal_equations_reference(camera_from_world, dense)
+                hessian, gradient = hessian + dense_hessian, gradient + dense_gradient
             try:
                 delta = -np.linalg.solve(hessian + 1e-9 * np.eye(6), gradient)
             except np.linalg.LinAlgError:
