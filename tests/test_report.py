@@ -119,7 +119,7 @@ def test_report_without_optional_inputs_skips_their_sections(browser, tmp_path):
     assert page["images"] == []
     assert page["headings"] == ["Metrics"]
     assert page["cells"]["frames"] == "3" and page["cells"]["trajectory"] == "-" and page["cells"]["device"] == "cpu"
-    assert page["cells"]["schema_version"] == "1" and "gaussians" not in page["cells"]
+    assert page["cells"]["schema_version"] == "2" and "gaussians" not in page["cells"]
 
 
 def test_reconstruct_run_report_shows_the_run_metrics(browser, synthetic_sequence_dir, tmp_path):
@@ -148,12 +148,12 @@ def test_metrics_files_round_trip_and_bad_ones_are_refused_in_one_line(tmp_path)
     write_metrics(path, metrics)
     assert read_metrics(path) == metrics
     written = path.read_text()
-    assert written.startswith('{\n  "schema_version": 1,\n  "sequence": "seq",')
+    assert written.startswith('{\n  "schema_version": 2,\n  "sequence": "seq",')
     assert '"map"' not in written and '"rendering"' not in written  # no map: its keys are absent
     for text, message in (
         ("{", "not JSON"),
-        (written.replace('"schema_version": 1', '"schema_version": 0'), "schema_version 0; this tambridge reads schema_version 1"),
-        (written.replace('  "schema_version": 1,\n', ""), "no schema_version"),
+        (written.replace('"schema_version": 2', '"schema_version": 0'), "schema_version 0; this tambridge reads schema_version 2"),
+        (written.replace('  "schema_version": 2,\n', ""), "no schema_version"),
         (written.replace('"frames_lost"', '"lost_frames"'), "lacks key 'frames_lost'"),
         (written.replace('"ate_mean_m"', '"ate_average_m"'), "lacks key 'trajectory.ate_mean_m'"),
     ):
