@@ -94,3 +94,23 @@ def test_sharper_half_is_the_half_of_higher_input_sharpness(blurred_dir):
     assert subset.psnr_db == [scores_all.psnr_db[frames.index(i)] for i in half]
     assert np.mean(subset.psnr_db) > np.mean(rest.psnr_db) + 1.0
     assert sharper_half(sequence, [5]) == [5] and sharper_half(sequence, []) == []
+
+
+@pytest.mark.slow
+def test_a_run_on_a_blurred_sequence_reports_scores_against_sharp_frames_and_inputs(tmp_path):
+    from pipelines.reconstruct import reconstruct
+    from tambridge.config import Config
+    from tambridge.evaluation.metrics import read_metrics
+
+    write_synthetic_sequence(tmp_path / "seq", SynthOptions(30, 160, 120, exposure_s=1 / 30, blur_subframes=4))
+    config = Config()
+    config.frontend.kind = "open3d"  # keyframes: the frames between them are novel views
+    config.mesh.enabled = False
+    config.evaluation.novel_view_every = 1
+    reconstruct(tmp_path / "seq", tmp_path / "out", config, progress=False)
+    rendering = read_metrics(tmp_path / "out" / "metrics.json").map.rendering
+    assert rendering.scored_against == "sharp_ground_truth"
+    novel, against_input, half = rendering.novel_views, rendering.novel_views_against_input, rendering.novel_views_sharper_half
+    assert novel.frames == against_input.frames >= 2 and half.frames == (novel.frames + 1) // 2
+    assert np.isfinite([novel.psnr_db, against_input.psnr_db, half.psnr_db]).all()
+    assert novel.psnr_db != against_input.psnr_db
