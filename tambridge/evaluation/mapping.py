@@ -9,10 +9,18 @@ import torch
 
 from tambridge.evaluation.config import EvaluationConfig
 from tambridge.evaluation.rendering import RenderingScores, score_renders
-from tambridge.evaluation.metrics import BridgeMetrics, MapMetrics, RenderingMetrics, ViewPoseErrors, ViewScores
+from tambridge.evaluation.metrics import (
+    BridgeMetrics,
+    MapMetrics,
+    RenderingMetrics,
+    ScoredAgainst,
+    ViewPoseErrors,
+    ViewScores,
+)
 from tambridge.errors import TrajectoryEvaluationError
 from tambridge.evaluation.trajectory import ate_rmse_m
 from tambridge.frontend.contract import FrontendResult
+from tambridge.images import sharpness
 from tambridge.io.tum import RgbdSequence
 from tambridge.mapping.stage import MappingStage
 from tambridge.runlog import RunLog
@@ -26,8 +34,10 @@ def evaluation_frames(frame_count: int, every: int, mapping_frames: set[int]) ->
     return [index for index in range(0, frame_count, every) if index not in mapping_frames]
 
 
-def score_views(mapping: MappingStage, rendering_poses: np.ndarray, frame_indices: list[int]) -> RenderingScores:
-    """PSNR/SSIM/LPIPS of renders at full resolution from ``rendering_poses`` (N, 4, 4) against the input frames,
+def score_views(mapping: MappingStage, rendering_poses: np.ndarray, frame_indices: list[int],
+                against_sharp: bool = True) -> RenderingScores:
+    """PSNR/SSIM/LPIPS of renders at full resolution from ``rendering_poses`` (N, 4, 4) against the frames'
+    :func:`reference_rgb` (the sharp ground truth where the sequence has it and ``against_sharp``, else the input),
     inside the sequence's valid region (undistortion's border, where the frames have no data, is not scored)."""
     camera = mapping.sequence.camera
     top, bottom, left, right = mapping.sequence.valid_region
@@ -41,10 +51,46 @@ def score_views(mapping: MappingStage, rendering_poses: np.ndarray, frame_indice
                 with torch.no_grad():
                     rendered = exposure.apply(rendered)
             rendered = rendered.clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
-            yield index, rendered, mapping.sequence[index].rgb[top:bottom, left:right].astype(np.float32) / 255.0
+            reference = reference_rgb(mapping.sequence, index, against_sharp)
+            yield index, rendered, reference[top:bottom, left:right].astype(np.float32) / 255.0
 
     with mapping.threads():
         return score_renders(pairs())
+
+
+def reference_rgb(sequence: RgbdSequence, index: int, sharp: bool = True) -> np.ndarray:
+    """What a render of frame ``index`` is scored against, (H, W, 3) uint8: its sharp ground-truth image where the
+    sequence has them (``gt_rgb/``, synthetic blurred sequences) and ``sharp``, else the input frame."""
+    return sequence.sharp_rgb(index) if sharp and sequence.has_sharp_rgb else sequence[index].rgb
+
+
+def sharper_half(sequence: RgbdSequence, frame_indices: list[int]) -> list[int]:
+    """The half (rounded up) of ``frame_indices`` whose input frames score highest on
+    :func:`~tambridge.images.sharpness`, in their given order: where a map sharper than its blurred inputs is
+    not punished for differing from them."""
+    scores = np.array([sharpness(sequence[index].rgb) for index in frame_indices])
+    keep = np.argsort(-scores, kind="stable")[: (len(frame_indices) + 1) // 2]
+    return [frame_indices[position] for position in sorted(keep)]
+
+
+def scores_of_frames(scores: RenderingScores, frame_indices: list[int]) -> RenderingScores:
+    """The per-frame scores of ``frame_indices``, each one of ``scores.frame_indices``."""
+    positions = [scores.frame_indices.index(index) for index in frame_indices]
+    return RenderingScores(list(frame_indices), [scores.psnr_db[i] for i in positions], [scores.ssim[i] for i in positions],
+                           None if scores.lpips is None else [scores.lpips[i] for i in positions])
+
+
+def blur_aware_scores(mapping: MappingStage, rendering_poses: np.ndarray, novel: RenderingScores) -> dict:
+    """The rendering fields about blur (see :class:`RenderingMetrics`) for the novel views' ``novel`` scores: what
+    they were scored against, their sharper half, and with sharp ground truth the scores against the inputs."""
+    sequence = mapping.sequence
+    return dict(
+        scored_against=ScoredAgainst.sharp_ground_truth if sequence.has_sharp_rgb else ScoredAgainst.input,
+        novel_views_sharper_half=ViewScores(**scores_of_frames(novel, sharper_half(sequence, novel.frame_indices)).summary()),
+        novel_views_against_input=ViewScores(**score_views(mapping, rendering_poses, novel.frame_indices,
+                                                           against_sharp=False).summary())
+        if sequence.has_sharp_rgb else None,
+    )
 
 
 def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: RgbdSequence, evaluation: EvaluationConfig,
@@ -58,8 +104,10 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
     view_frames = sorted(view.frame_index for view in mapping.views)
     novel = evaluation_frames(len(sequence), evaluation.novel_view_every, set(view_frames))
     with run_log.stage("evaluation"):
-        novel_scores = ViewScores(**score_views(mapping, poses, novel).summary())
+        novel_per_frame = score_views(mapping, poses, novel)
+        novel_scores = ViewScores(**novel_per_frame.summary())
         view_scores = ViewScores(**score_views(mapping, poses, view_frames).summary())
+        blur_scores = blur_aware_scores(mapping, poses, novel_per_frame)
     refinements = [view.refinement for view in mapping.views if view.refinement is not None and not view.refinement.skipped]
     logger.info("rendering: novel views %.2f dB PSNR, %.3f SSIM (%d frames); mapping views %.2f dB, %.3f SSIM (%d); %d Gaussians",
                 novel_scores.psnr_db or float("nan"), novel_scores.ssim or float("nan"), len(novel),
@@ -77,7 +125,7 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
             # The run's metrics say why there is no ATE (trajectory_unavailable); the map's scores stand without it.
             logger.info("no ATE of the mapping views: %s", error)
     return MapMetrics(
-        rendering=RenderingMetrics(novel_views=novel_scores, mapping_views=view_scores),
+        rendering=RenderingMetrics(novel_views=novel_scores, mapping_views=view_scores, **blur_scores),
         gaussians=len(mapping.map),
         mapping_views=len(mapping.views),
         mapping_resolution=[mapping.camera.width, mapping.camera.height],

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from tambridge.errors import TambridgeError
 from tambridge.files import atomic_write_text
+from tambridge.settings import Choice
 
 SCHEMA_VERSION = 2
 """Bumped whenever a key of metrics.json is added, renamed or removed, or changes meaning."""
@@ -54,12 +55,25 @@ class ViewScores:
     lpips: float | None
 
 
+class ScoredAgainst(Choice):
+    """What renders are scored against: a sequence's sharp ground-truth images (``gt_rgb/``) or its input frames."""
+
+    sharp_ground_truth = "sharp_ground_truth"
+    input = "input"
+
+
 @dataclasses.dataclass(kw_only=True)
 class RenderingMetrics:
-    """The map rendered at full resolution: at the novel (evaluation) views and at the mapping views."""
+    """The map rendered at full resolution: at the novel (evaluation) views and at the mapping views, both scored
+    against ``scored_against``; ``novel_views_sharper_half``: the novel views whose input frames are the sharper
+    half (variance of the Laplacian); ``novel_views_against_input``: with sharp ground truth only, the novel views
+    scored against the (blurred) input frames instead."""
 
     novel_views: ViewScores
     mapping_views: ViewScores
+    scored_against: ScoredAgainst
+    novel_views_sharper_half: ViewScores
+    novel_views_against_input: ViewScores | None = dataclasses.field(default=None, metadata=OMITTED_WHEN_NONE)
 
 
 @dataclasses.dataclass(kw_only=True)

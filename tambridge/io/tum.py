@@ -144,10 +144,13 @@ class RgbdSequence:
         depth_paths: list[Path],
         timestamps_s: np.ndarray,
         ground_truth: Trajectory | None,
+        gt_rgb_paths: list[Path] | None = None,
     ) -> None:
         self.folder = folder
         self.sensor = sensor
         self.rgb_paths = rgb_paths
+        # Sharp ground-truth colour images, one per frame (``gt_rgb/``), or None: see :meth:`sharp_rgb`.
+        self.gt_rgb_paths = gt_rgb_paths
         self.depth_paths = depth_paths
         self.timestamps_s = timestamps_s
         self.ground_truth = ground_truth
@@ -176,24 +179,45 @@ class RgbdSequence:
             raise IndexError(index)
         rgb = self.read_rgb(self.rgb_paths[index])
         depth_m = self.read_depth_m(self.depth_paths[index])
-        if self._colour_to_depth is not None:
-            if depth_m.shape != (self.camera.height, self.camera.width):
-                raise SequenceFormatError(
-                    f"{self.depth_paths[index]}: depth is {depth_m.shape[1]}x{depth_m.shape[0]} but the depth camera is "
-                    f"{self.camera.width}x{self.camera.height}; fix width/height in camera.yaml (--camera)"
-                )
-            rgb = self._colour_to_depth.colour_in_depth_camera(rgb, depth_m)
-        elif depth_m.shape != rgb.shape[:2]:
-            raise SequenceFormatError(
-                f"{self.depth_paths[index]}: depth is {depth_m.shape[1]}x{depth_m.shape[0]} but its colour image "
-                f"{self.rgb_paths[index].name} is {rgb.shape[1]}x{rgb.shape[0]}; colour and depth must be registered"
-            )
+        rgb = self._colour_in_frame(rgb, self.rgb_paths[index], depth_m, self.depth_paths[index])
         if self._undistort_maps is not None:
             map_x, map_y = self._undistort_maps
-            rgb = cv2.remap(rgb, map_x, map_y, cv2.INTER_LINEAR)
             # Nearest neighbour: blending depth across an edge invents surfaces that do not exist.
             depth_m = cv2.remap(depth_m, map_x, map_y, cv2.INTER_NEAREST)
         return Frame(index=index, timestamp_s=float(self.timestamps_s[index]), rgb=rgb, depth_m=depth_m)
+
+    @property
+    def has_sharp_rgb(self) -> bool:
+        """Whether the folder holds sharp ground-truth colour images (``gt_rgb/``, synthetic blurred sequences)."""
+        return self.gt_rgb_paths is not None
+
+    def sharp_rgb(self, index: int) -> np.ndarray:
+        """Frame ``index``'s sharp ground-truth colour (H, W, 3) uint8 from ``gt_rgb/``, in the frames' camera as
+        ``self[index].rgb`` is (registered, undistorted); only where :attr:`has_sharp_rgb`."""
+        if self.gt_rgb_paths is None:
+            raise SequenceFormatError(f"{self.folder}: no {GT_RGB_FOLDER}/ folder of sharp colour images")
+        rgb = self.read_rgb(self.gt_rgb_paths[index])
+        depth_m = self.read_depth_m(self.depth_paths[index]) if self._colour_to_depth is not None else None
+        return self._colour_in_frame(rgb, self.gt_rgb_paths[index], depth_m, self.depth_paths[index])
+
+    def _colour_in_frame(self, rgb: np.ndarray, rgb_path: Path, depth_m: np.ndarray | None, depth_path: Path) -> np.ndarray:
+        """Colour ``rgb`` read from ``rgb_path`` as frames carry it: resampled into the depth camera (with the raw
+        ``depth_m``, needed only then) or undistorted; sizes checked against the depth image of ``depth_path``."""
+        if self._colour_to_depth is not None:
+            if depth_m.shape != (self.camera.height, self.camera.width):
+                raise SequenceFormatError(
+                    f"{depth_path}: depth is {depth_m.shape[1]}x{depth_m.shape[0]} but the depth camera is "
+                    f"{self.camera.width}x{self.camera.height}; fix width/height in camera.yaml (--camera)"
+                )
+            rgb = self._colour_to_depth.colour_in_depth_camera(rgb, depth_m)
+        elif depth_m is not None and depth_m.shape != rgb.shape[:2]:
+            raise SequenceFormatError(
+                f"{depth_path}: depth is {depth_m.shape[1]}x{depth_m.shape[0]} but its colour image "
+                f"{rgb_path.name} is {rgb.shape[1]}x{rgb.shape[0]}; colour and depth must be registered"
+            )
+        if self._undistort_maps is not None:
+            rgb = cv2.remap(rgb, *self._undistort_maps, cv2.INTER_LINEAR)
+        return rgb
 
     def __iter__(self):
         for index in range(len(self)):
@@ -302,6 +326,7 @@ def open_sequence(
         depth_paths=[folder / depth_list[j][1] for _, j in pairs],
         timestamps_s=np.array([rgb_stamps[i] for i, _ in pairs]),
         ground_truth=ground_truth,
+        gt_rgb_paths=_gt_rgb_paths(folder, [rgb_list[i][1] for i, _ in pairs]),
     )
     if check_depth_scale:
         check_depth_scale_plausible(sequence)
@@ -353,6 +378,16 @@ def find_accelerometer(folder: Path) -> AccelerometerSamples | None:
     """The samples of ``folder/accelerometer.txt``, or None where the sequence has none."""
     path = Path(folder) / ACCELEROMETER_FILE
     return read_accelerometer(path) if path.exists() else None
+def _gt_rgb_paths(folder: Path, rgb_names: list[str]) -> list[Path] | None:
+    """``gt_rgb/`` images named as the frames' colour images, or None without that folder; a missing one fails."""
+    if not (folder / GT_RGB_FOLDER).is_dir():
+        return None
+    paths = [folder / GT_RGB_FOLDER / Path(name).name for name in rgb_names]
+    missing = [path for path in paths if not path.is_file()]
+    if missing:
+        raise SequenceFormatError(f"{missing[0]}: {len(missing)} frames have no sharp image in {GT_RGB_FOLDER}/; "
+                                  f"restore them or remove {folder / GT_RGB_FOLDER}")
+    return paths
 
 
 DEPTH_CHECK_FRAMES = 30
