@@ -144,8 +144,8 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
 
 
 def fit_bound(sequence: Path, frames: int, scale: float, views: int = 4, steps: int = 60) -> dict:
-    """The map of every mapping view at ground-truth poses, then ``steps`` sharpening steps per view on ``views``
-    of them at ``scale`` of the sharpening resolution; scores on those views and on held-out frames between them."""
+    """A map of ``views`` frames spread over the first 60, mapped online at ground-truth poses (bridge off), then
+    ``steps`` sharpening steps per view at ``scale``; scores on those views and on the frames half-way between."""
     import dataclasses
 
     import cv2
