@@ -143,9 +143,10 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
             "ate_cm": None if metrics.trajectory is None else metrics.trajectory.ate_rmse_m * 100, "extra": extra, **rows}
 
 
-def fit_bound(sequence: Path, frames: int, scale: float, views: int = 4, steps: int = 60) -> dict:
+def fit_bound(sequence: Path, frames: int, scale: float, densify: float = 0.0, views: int = 4, steps: int = 60) -> dict:
     """A map of ``views`` frames spread over the first 60, mapped online at ground-truth poses (bridge off), then
-    ``steps`` sharpening steps per view at ``scale``; scores on those views and on the frames half-way between."""
+    ``steps`` sharpening steps per view at ``scale``, first densified on the worst ``densify`` share of each view's
+    pixels (colour error over 0.05); scores on those views and on the frames half-way between."""
     import dataclasses
 
     import cv2
@@ -165,7 +166,8 @@ def fit_bound(sequence: Path, frames: int, scale: float, views: int = 4, steps: 
     chosen = [int(i) for i in np.linspace(0, min(len(data), 60) - 1, views).round()]
     held_out = sorted({(a + b) // 2 for a, b in zip(chosen, chosen[1:])})
     mapper = dataclasses.replace(config.mapper, sharp_iterations_per_view=steps, sharp_resolution_scale=scale,
-                                 window_size=views)
+                                 window_size=views, sharp_densify_error=0.05 if densify else 0.0,
+                                 sharp_densify_fraction=densify)
     run_log = RunLog(RESULTS / "runs" / "sharp_splats_fit.log")
     stage = MappingStage(data, mapper, BridgeConfig(enabled=False), run_log, seed=config.seed)
     poses = {}
@@ -186,7 +188,7 @@ def fit_bound(sequence: Path, frames: int, scale: float, views: int = 4, steps: 
         compressed = cv2.imread(str(sequence / "rgb" / f"{png.stem}.jpg")).astype(np.float32) / 255.0
         jpeg.append(float(-10 * np.log10(np.mean((compressed - cv2.imread(str(png)).astype(np.float32) / 255.0) ** 2))))
     run_log.close()
-    return {"sequence": sequence.name, "frames": frames, "sharp_resolution_scale": scale, "views": chosen,
+    return {"sequence": sequence.name, "frames": frames, "sharp_resolution_scale": scale, "densify": densify, "views": chosen,
             "held_out": held_out, "steps_per_view": steps, "gaussians": len(stage.map), "seconds": seconds,
             "fitted_psnr": fitted["psnr_db"], "fitted_ssim": fitted["ssim"],
             "held_out_psnr": between["psnr_db"], "held_out_ssim": between["ssim"],
@@ -215,7 +217,7 @@ def table(rows: list[dict], fits: list[dict]) -> str:
                          f"{s['psnr_exp']:7.2f} {s['ssim_exp']:7.3f} {s['ssim_low']:7.3f} {s['fps']:6.2f} "
                          f"{s['seconds']:8.1f} {s['gaussians']:9d}")
     for fit in fits:
-        lines.append(f"fit {fit['sequence'][:24]} scale {fit['sharp_resolution_scale']:g}: fitted {fit['fitted_psnr']:.2f} dB "
+        lines.append(f"fit {fit['sequence'][:24]} scale {fit['sharp_resolution_scale']:g} densify {fit.get('densify', 0):g}: fitted {fit['fitted_psnr']:.2f} dB "
                      f"/ {fit['fitted_ssim']:.3f}, held out {fit['held_out_psnr']:.2f} dB / {fit['held_out_ssim']:.3f}, "
                      f"JPEG vs lossless {fit['jpeg_against_lossless_psnr'] or float('nan'):.1f} dB, {fit['gaussians']} Gaussians")
     return "\n".join(lines)
@@ -225,10 +227,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cases", nargs="*", default=list(CASES), help="sequence:preset:frames (sequence: "
                         + ", ".join(SEQUENCES) + ")")
-    parser.add_argument("--fit", action="append", default=[], help="sequence:frames:resolution_scale")
+    parser.add_argument("--fit", action="append", default=[], help="sequence:frames:resolution_scale[:densify share]")
     parser.add_argument("--set", action="append", default=[], help="section.key=value for every case")
     parser.add_argument("--child", nargs=4, metavar=("SEQUENCE", "PRESET", "FRAMES", "OUT"), help=argparse.SUPPRESS)
-    parser.add_argument("--child-fit", nargs=3, metavar=("SEQUENCE", "FRAMES", "SCALE"), help=argparse.SUPPRESS)
+    parser.add_argument("--child-fit", nargs=4, metavar=("SEQUENCE", "FRAMES", "SCALE", "DENSIFY"), help=argparse.SUPPRESS)
     parser.add_argument("--output", type=Path, default=RESULTS / "sharp_splats.json")
     arguments = parser.parse_args()
     if arguments.child:
@@ -236,8 +238,8 @@ def main() -> None:
         print(json.dumps(child_case(Path(sequence), preset, int(frames), Path(out), arguments.set)))
         return
     if arguments.child_fit:
-        sequence, frames, scale = arguments.child_fit
-        print(json.dumps(fit_bound(Path(sequence), int(frames), float(scale))))
+        sequence, frames, scale, densify = arguments.child_fit
+        print(json.dumps(fit_bound(Path(sequence), int(frames), float(scale), float(densify))))
         return
     # Cases and fits of an earlier run of this script stay in the JSON unless run again (one case at a time fits
     # a shared machine better).
@@ -245,7 +247,8 @@ def main() -> None:
     rows, fits = [], []
 
     def write() -> None:
-        key = lambda row: (row["sequence"], row.get("preset"), row["frames"], row.get("sharp_resolution_scale"))  # noqa: E731
+        key = lambda row: (row["sequence"], row.get("preset"), row["frames"], row.get("sharp_resolution_scale"),  # noqa: E731
+                           row.get("densify"))
         done = {key(row) for row in rows + fits}
         report = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                   "machine": f"{platform.machine()}, {os.cpu_count()} cores (shared: compare on/off within a row)",
@@ -266,9 +269,9 @@ def main() -> None:
         write()
         print(table([row], []), flush=True)
     for fit in arguments.fit:
-        name, frames, scale = fit.split(":")
-        log = RESULTS / "runs" / f"sharp_splats_fit_{name}_{frames}_{scale}.log"
-        row = run_child(["--child-fit", str(SEQUENCES[name]), frames, scale], log)
+        name, frames, scale, densify = (fit + ":0").split(":")[:4]
+        log = RESULTS / "runs" / f"sharp_splats_fit_{name}_{frames}_{scale}_{densify}.log"
+        row = run_child(["--child-fit", str(SEQUENCES[name]), frames, scale, densify], log)
         if row is None:
             print(f"fit {fit}: failed, see {log}", file=sys.stderr)
             continue
