@@ -66,7 +66,8 @@ def test_every_preset_loads(preset):
 def test_the_presets_say_what_they_change():
     assert load_config(ROOT / "configs" / "open3d.yaml").frontend.kind is FrontendKind.open3d
     fast, quality = load_config(ROOT / "configs" / "fast.yaml"), load_config(ROOT / "configs" / "quality.yaml")
-    assert fast.mapper.resolution_scale == 0.125 < Config().mapper.resolution_scale < quality.mapper.resolution_scale == 0.5
+    assert fast.mapper.resolution_scale == 0.125 < Config().mapper.resolution_scale == quality.mapper.resolution_scale
+    assert Config().mapper.sharp_iterations_per_view < quality.mapper.sharp_iterations_per_view == 8
 
 
 @pytest.mark.parametrize("camera_file", sorted((ROOT / "configs" / "cameras").glob("*.yaml")), ids=lambda path: path.name)

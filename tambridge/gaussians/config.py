@@ -23,7 +23,8 @@ class MapperConfig:
     Each new mapping view gets ``iterations`` Adam steps, alternating the new view with earlier views of the
     window (the ``window_size - 1`` earlier views that overlap it most); after the frontend finishes, every
     mapping view gets ``final_iterations_per_view`` more at the final poses. Mapping runs on frames resized by
-    ``resolution_scale``. Learning rates are 4-10x SplaTAM's: with a few dozen steps per view rather than SplaTAM's
+    ``resolution_scale``; a last sharpening pass (``sharp_*``) runs at ``sharp_resolution_scale``, where a user views
+    the map. Learning rates are 4-10x SplaTAM's: with a few dozen steps per view rather than SplaTAM's
     hundreds they reach a sharper map (docs/benchmarks.md).
     """
 
@@ -41,6 +42,18 @@ class MapperConfig:
                                at_least(1))
     final_iterations_per_view: int = setting(2, "Adam steps per mapping view at the final poses after tracking",
                                              NON_NEGATIVE)
+    # The map is viewed at the camera's resolution, not the mapping one: a last pass there builds the detail
+    # (edges, texture) that the coarse online mapping cannot see. Frames are read again, a window at a time.
+    sharp_resolution_scale: float = setting(1.0, "the sharpening pass after the final one runs on frames resized by "
+                                                 "this (1: the camera's resolution)", Range(0, 2, low_open=True))
+    sharp_iterations_per_view: int = setting(3, "Adam steps per mapping view in the sharpening pass (0: off)",
+                                             NON_NEGATIVE)
+    # Off by default: with tracked poses the added Gaussians copy one view's detail where the others disagree, and
+    # novel views render worse (docs/benchmarks.md).
+    sharp_densify_error: float = setting(0.0, "before the sharpening steps, a Gaussian is added at each pixel whose "
+                                              "colour error (mean over channels) exceeds this (0: none)", UNIT)
+    sharp_densify_fraction: float = setting(0.02, "... at most at this share of a view's pixels, the worst first",
+                                            UNIT)
     lr_means_m: float = setting(5e-4, "Adam learning rate of the Gaussian centres (m)", POSITIVE)
     lr_rgb: float = setting(1e-2, "Adam learning rate of the colours", POSITIVE)
     lr_log_radii: float = setting(1e-2, "Adam learning rate of the log radii", POSITIVE)

@@ -269,6 +269,38 @@ class GaussianMap:
             mask = images.depth_m > 0
         else:
             mask = densify_mask(images.depth_m, rendered, self.config.densify_silhouette, self.config.densify_depth_factor)
+        return self._add_pixels(anchor_id, camera, images, mask, exposure)
+
+    def densify_colour_error(self, anchor_id: int, camera: Camera, images: ViewImages, exposure: ViewExposure | None,
+                             threshold: float, fraction: float) -> int:
+        """Add a one-pixel Gaussian (as :meth:`densify`) at the pixels whose colour error is worst: the map rendered
+        at the view's pose (through ``exposure``) against ``images``, mean absolute error over the channels above
+        ``threshold``, at most ``fraction`` of the view's pixels, only where depth is valid and the colour has data.
+        At a finer ``camera`` than the mapping one, this adds detail that the map's coarser Gaussians blur.
+        Returns how many were added."""
+        if not len(self) or threshold <= 0 or fraction <= 0:
+            return 0
+        with torch.no_grad():
+            world_from_camera = self._world_from_anchor[self._anchor_ids.index(anchor_id)].cpu().numpy()
+            rendered = self.render(camera, world_from_camera).rgb
+            if exposure is not None:
+                rendered = exposure.apply(rendered)
+            error = (rendered.clamp(0.0, 1.0) - images.rgb).abs().mean(dim=2)
+            valid = images.depth_m > 0
+            if images.colour_valid is not None:
+                valid &= images.colour_valid
+            error = torch.where(valid, error, torch.zeros_like(error))
+            budget = int(fraction * error.numel())
+            mask = error > threshold
+            if int(mask.sum()) > budget:
+                cutoff = torch.topk(error.flatten(), budget + 1).values[-1] if budget else error.max()
+                mask &= error > cutoff
+        return self._add_pixels(anchor_id, camera, images, mask, exposure)
+
+    def _add_pixels(self, anchor_id: int, camera: Camera, images: ViewImages, mask: torch.Tensor,
+                    exposure: ViewExposure | None) -> int:
+        """Add a Gaussian at each pixel where ``mask`` (H, W) holds: back-projected into the view's (the anchor's)
+        camera frame, radius one pixel ``r = d / f`` (eq. 8), the pixel's colour in map colours through ``exposure``."""
         points = backproject(images.depth_m, camera, mask)
         colours = images.rgb[mask] if exposure is None else exposure.invert(images.rgb[mask]).clamp(0.0, 1.0)
         self.add(anchor_id, points, colours, points[:, 2] / camera.mean_focal_px)

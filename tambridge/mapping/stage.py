@@ -6,8 +6,9 @@ Coverage (``mapper.coverage_unexplained``): ``MappingStage.needs_view`` renders 
 between keyframes and says when one shows too much the map does not explain; the pipeline then asks the frontend
 for a keyframe, and such a keyframe is mapped even where eq. 3 finds it too similar to the previous one.
 ``MappingStage.finish`` moves every view to the frontend's final (loop-corrected) keyframe poses and runs a last
-pass over all views. Frames are not kept: a small cache holds the window's images at the mapping resolution and
-anything else is read again from the sequence.
+pass over all views, then a sharpening pass at the camera's resolution. Frames are not kept: a small cache holds
+the window's images at the mapping resolution and anything else (the sharpening pass's frames too) is read again
+from the sequence.
 
 Rendering poses. A mapping view's pose is its keyframe's pose times the bridge's correction
 ``keyframe_from_view`` (identity with the bridge off), so frontend corrections and the bridge compose. Any other
@@ -253,21 +254,48 @@ class MappingStage:
 
     def finish(self, keyframe_poses: dict[int, np.ndarray]) -> None:
         """Move every view to the final keyframe poses, run ``final_iterations_per_view`` more steps on each view
-        (in random order) and prune."""
+        (in random order), then the sharpening pass (:meth:`sharpen`), and prune."""
         with self.run_log.stage("final_refinement"), self.threads():
             self.update_keyframe_poses(keyframe_poses)
-            # Views in random order, a window's worth at a time (bounded memory), each view in turn within a chunk.
-            order = [self.views[i] for i in self._rng.permutation(len(self.views))]
-            chunk_size = max(1, self.mapper_config.window_size)
-            for start in range(0, len(order), chunk_size):
-                chunk = order[start : start + chunk_size]
+            for chunk in self.view_chunks():
                 views = [(self.view_pose(v), self.images(v.frame_index)) for v in chunk]
                 self.map.optimise(self.camera, views, list(range(len(chunk))) * self.mapper_config.final_iterations_per_view,
                                   self.exposures(chunk))
-            if self.views:
+        if self.mapper_config.sharp_iterations_per_view:
+            with self.run_log.stage("sharpening"), self.threads():
+                self.sharpen()
+        if self.views:
+            with self.run_log.stage("final_refinement"):
                 removed = self.map.prune(self.camera, self.view_pose(self.views[-1]))
-                logger.info("final refinement: %d steps per view over %d views, %d Gaussians pruned -> %d",
-                            self.mapper_config.final_iterations_per_view, len(self.views), removed, len(self.map))
+            logger.info("final refinement: %d steps per view over %d views, %d Gaussians pruned -> %d",
+                        self.mapper_config.final_iterations_per_view, len(self.views), removed, len(self.map))
+
+    def view_chunks(self) -> list[list[MappingView]]:
+        """The views in random order, a window's worth at a time (bounded memory), for the passes after tracking."""
+        order = [self.views[i] for i in self._rng.permutation(len(self.views))]
+        chunk_size = max(1, self.mapper_config.window_size)
+        return [order[start : start + chunk_size] for start in range(0, len(order), chunk_size)]
+
+    def sharpen(self) -> None:
+        """The sharpening pass: every view's frame read again at ``mapper.sharp_resolution_scale`` (the resolution a
+        user views the map at), Gaussians added where its colour error is worst (``sharp_densify_*``), then
+        ``sharp_iterations_per_view`` Adam steps on each view, a chunk of views at a time so that only a window's
+        frames are held at that resolution."""
+        config = self.mapper_config
+        camera = self.sequence.camera.scaled(config.sharp_resolution_scale)
+        added = 0
+        for chunk in self.view_chunks():
+            views = []
+            for view in chunk:
+                images = resize_frame(self.sequence[view.frame_index], config.sharp_resolution_scale, self.device,
+                                      self.sequence.valid_region)
+                added += self.map.densify_colour_error(view.keyframe_id, camera, images, view.exposure,
+                                                       config.sharp_densify_error, config.sharp_densify_fraction)
+                views.append((self.view_pose(view), images))
+            self.map.optimise(camera, views, list(range(len(chunk))) * config.sharp_iterations_per_view,
+                              self.exposures(chunk))
+        logger.info("sharpening at %dx%d: %d steps per view over %d views, +%d Gaussians -> %d", camera.width,
+                    camera.height, config.sharp_iterations_per_view, len(self.views), added, len(self.map))
 
     def rendering_poses(self, trajectory: Trajectory) -> np.ndarray:
         """(N, 4, 4) rendering pose of every frame of the frontend's ``trajectory`` (see the module doc).

@@ -1,0 +1,285 @@
+"""Sharp splats: the sharpening pass after tracking (``mapper.sharp_*``) on vs off, per sequence and preset.
+
+    python benchmarks/sharp_splats.py                                   # 7-Scenes 0-299 and fr1/xyz 0-199, both presets
+    python benchmarks/sharp_splats.py --cases 7scenes:default:700       # one case: sequence:preset:frames (0: all)
+    python benchmarks/sharp_splats.py --fit 7scenes:300:0.25 --fit 7scenes:300:1.0   # upper bounds (below)
+
+Every case is one ``reconstruct`` run in its own process (peak memory its own). On and off come from that same run:
+the sharpening pass is the last step of the mapping stage and nothing before it depends on it, so the run keeps a
+copy of the map and of the views' exposures as they are before the pass, and scores both maps at the same novel
+views (every 5th frame that is not a mapping view). "off" seconds are the run's end-to-end seconds less those of
+its ``sharpening`` stage, its frames/s the frames over those.
+
+Scores, all renders at the camera's full resolution from the run's rendering poses:
+- ``psnr``/``ssim``: the run's own (metrics.json: through each view's exposure, inside the valid region);
+- ``psnr_exp``/``ssim_exp``: as exported: the map's own colours with no per-view exposure (what a viewer of
+  splats.ply shows at those poses), inside the valid region;
+- ``ssim_low``: the run's SSIM of the same renders and frames area-resized to the mapping resolution (what the map
+  was optimised at): the gap to ``ssim`` is the detail lost between the resolutions.
+
+``--fit`` is the upper bound of what the map representation and the data give, with tracking out of the picture:
+the map built at ground-truth poses (7-Scenes: KinectFusion's, a pseudo ground truth) is fitted for many steps to
+a handful of the views (sequence:frames:resolution_scale, the sharpening pass's resolution) and scored on those
+views and on held-out frames between them; where the folder has lossless PNGs of some frames beside its JPEGs
+(7-Scenes' rgb_png_lossless), the JPEGs' PSNR against them is the ceiling compression alone sets.
+
+Prints a table and writes benchmarks/results/sharp_splats.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.sequences import camera_file_for  # noqa: E402
+from tambridge.files import atomic_write_text  # noqa: E402
+
+SEQUENCES = {
+    "7scenes": ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699",
+    "fr1xyz": ROOT.parent / "data" / "rgbd_dataset_freiburg1_xyz",
+}
+CASES = ("7scenes:default:300", "7scenes:quality:300", "fr1xyz:default:200", "fr1xyz:quality:200")
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def as_exported_scores(mapping, poses: np.ndarray, frames: list[int]) -> dict:
+    """PSNR/SSIM of the map rendered with no exposure at full resolution, and the run's SSIM at the mapping
+    resolution (renders through the exposures, area-resized as the mapper resizes frames); inside the valid region."""
+    import cv2
+    import torch
+
+    from tambridge.evaluation.rendering import psnr_db, ssim_value
+
+    camera = mapping.sequence.camera
+    top, bottom, left, right = mapping.sequence.valid_region
+    size = (mapping.camera.width, mapping.camera.height)
+    psnr, ssim, ssim_low = [], [], []
+    with mapping.threads():
+        for index in frames:
+            rendered = mapping.map.render(camera, poses[index]).rgb
+            observed = mapping.sequence[index].rgb[top:bottom, left:right].astype(np.float32) / 255.0
+            own = rendered.clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
+            psnr.append(psnr_db(own, observed))
+            ssim.append(ssim_value(own, observed))
+            exposure = mapping.anchor_view(index).exposure
+            with torch.no_grad():
+                compensated = (rendered if exposure is None else exposure.apply(rendered)).clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
+            low = [cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
+                   for image in (compensated, observed)]
+            ssim_low.append(ssim_value(*low))
+    return {"psnr_exp": float(np.mean(psnr)), "ssim_exp": float(np.mean(ssim)), "ssim_low": float(np.mean(ssim_low))}
+
+
+def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[str]) -> dict:
+    """One run in this process, the map before the sharpening pass kept for the "off" scores."""
+    import pipelines.reconstruct as pipeline
+    from tambridge.config import load_config
+    from tambridge.evaluation.mapping import evaluation_frames, score_views
+    from tambridge.gaussians.mapper import ViewExposure
+    from tambridge.mapping.stage import MappingStage
+    from tambridge.run_folder import Start
+
+    overrides = list(extra)
+    if frames:
+        overrides.append(f"input.max_frames={frames}")
+    camera_file = camera_file_for(sequence)
+    if camera_file is not None:
+        overrides.append(f"input.camera_file={camera_file}")
+    config = load_config(ROOT / "configs" / f"{preset}.yaml", overrides + ["mesh.enabled=false"])
+    before: dict = {}
+    rows: dict = {}
+    sharpen = MappingStage.sharpen
+
+    def keeping_the_map(stage: MappingStage) -> None:
+        before["map"] = copy.deepcopy(stage.map.state_dict())
+        before["exposures"] = [None if v.exposure is None else copy.deepcopy(v.exposure.state_dict()) for v in stage.views]
+        sharpen(stage)
+
+    mapping_metrics = pipeline.mapping_metrics
+
+    def scoring_both(mapping, tracking, sequence, evaluation, run_log):
+        metrics = mapping_metrics(mapping, tracking, sequence, evaluation, run_log)
+        poses = mapping.rendering_poses(tracking.trajectory)
+        novel = evaluation_frames(len(sequence), evaluation.novel_view_every, {v.frame_index for v in mapping.views})
+        on = {"psnr": metrics.rendering.novel_views.psnr_db, "ssim": metrics.rendering.novel_views.ssim,
+              "gaussians": len(mapping.map)}
+        rows["on"] = on | as_exported_scores(mapping, poses, novel)
+        if before:
+            mapping.map.load_state_dict(before["map"])
+            for view, exposure in zip(mapping.views, before["exposures"]):
+                view.exposure = None if exposure is None else ViewExposure.from_state_dict(exposure)
+            scores = score_views(mapping, poses, novel).summary()
+            off = {"psnr": scores["psnr_db"], "ssim": scores["ssim"], "gaussians": len(mapping.map)}
+            rows["off"] = off | as_exported_scores(mapping, poses, novel)
+        return metrics
+
+    MappingStage.sharpen = keeping_the_map
+    pipeline.mapping_metrics = scoring_both
+    started = time.perf_counter()
+    result = pipeline.reconstruct(sequence, out, config, progress=False, start=Start.OVERWRITE)
+    wall = time.perf_counter() - started
+    metrics = result.metrics
+    sharpening_s = metrics.seconds_per_stage.get("sharpening", 0.0)
+    rows["on"].update(seconds=metrics.seconds_total, fps=metrics.fps_end_to_end)
+    if "off" in rows:
+        rows["off"].update(seconds=metrics.seconds_total - sharpening_s,
+                           fps=metrics.frames / (metrics.seconds_total - sharpening_s))
+    return {"sequence": sequence.name, "preset": preset, "frames": metrics.frames, "mapping_views": len(before["exposures"]) if before else None,
+            "wall_seconds_process": wall, "sharpening_seconds": sharpening_s,
+            "seconds_per_stage": metrics.seconds_per_stage, "peak_memory_mb": metrics.peak_memory_mb,
+            "ate_cm": None if metrics.trajectory is None else metrics.trajectory.ate_rmse_m * 100, "extra": extra, **rows}
+
+
+def fit_bound(sequence: Path, frames: int, scale: float, densify: float = 0.0, views: int = 4, steps: int = 60) -> dict:
+    """A map of ``views`` frames spread over the first 60, mapped online at ground-truth poses (bridge off), then
+    ``steps`` sharpening steps per view at ``scale``, first densified on the worst ``densify`` share of each view's
+    pixels (colour error over 0.05); scores on those views and on the frames half-way between."""
+    import dataclasses
+
+    import cv2
+
+    from tambridge.bridge.config import BridgeConfig
+    from tambridge.config import load_config
+    from tambridge.evaluation.mapping import score_views
+    from tambridge.frontend.contract import KeyframeEvent
+    from tambridge.io.tum import open_sequence
+    from tambridge.mapping.stage import MappingStage
+    from tambridge.runlog import RunLog
+
+    config = load_config(ROOT / "configs" / "default.yaml")
+    camera_file = camera_file_for(sequence)
+    data = open_sequence(sequence, camera_file=camera_file, max_frames=frames or None)
+    truth = data.ground_truth.nearest(data.timestamps_s).world_from_camera
+    chosen = [int(i) for i in np.linspace(0, min(len(data), 60) - 1, views).round()]
+    held_out = sorted({(a + b) // 2 for a, b in zip(chosen, chosen[1:])})
+    mapper = dataclasses.replace(config.mapper, sharp_iterations_per_view=steps, sharp_resolution_scale=scale,
+                                 window_size=views, sharp_densify_error=0.05 if densify else 0.0,
+                                 sharp_densify_fraction=densify)
+    run_log = RunLog(RESULTS / "runs" / "sharp_splats_fit.log")
+    stage = MappingStage(data, mapper, BridgeConfig(enabled=False), run_log, seed=config.seed)
+    poses = {}
+    started = time.perf_counter()
+    for keyframe_id, index in enumerate(chosen):
+        poses[keyframe_id] = truth[index]
+        event = KeyframeEvent(keyframe_id, index, 0.0, truth[index], np.zeros((0, 3)), np.zeros((0, 2)),
+                              np.zeros(0, np.int64), 0, 0)
+        stage.on_keyframe(event, data[index], dict(poses))
+    stage.finish(poses)
+    seconds = time.perf_counter() - started
+    fitted, between = score_views(stage, truth, chosen).summary(), score_views(stage, truth, held_out).summary()
+    # 7-Scenes ships its colour as JPEG, with a lossless PNG of some frames beside it: how far compression alone
+    # lies from the recorded image.
+    lossless = sorted((sequence / "rgb_png_lossless").glob("*.png"))
+    jpeg = []
+    for png in lossless:
+        compressed = cv2.imread(str(sequence / "rgb" / f"{png.stem}.jpg")).astype(np.float32) / 255.0
+        jpeg.append(float(-10 * np.log10(np.mean((compressed - cv2.imread(str(png)).astype(np.float32) / 255.0) ** 2))))
+    run_log.close()
+    return {"sequence": sequence.name, "frames": frames, "sharp_resolution_scale": scale, "densify": densify, "views": chosen,
+            "held_out": held_out, "steps_per_view": steps, "gaussians": len(stage.map), "seconds": seconds,
+            "fitted_psnr": fitted["psnr_db"], "fitted_ssim": fitted["ssim"],
+            "held_out_psnr": between["psnr_db"], "held_out_ssim": between["ssim"],
+            "jpeg_against_lossless_psnr": float(np.mean(jpeg)) if jpeg else None, "lossless_frames": len(jpeg)}
+
+
+def run_child(arguments: list[str], log: Path) -> dict | None:
+    """This script in a child process (its own peak memory); the row it prints last, None if it failed."""
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as handle:
+        child = subprocess.run([sys.executable, __file__, *arguments], cwd=ROOT, stdout=subprocess.PIPE,
+                               stderr=handle, text=True)
+    lines = [line for line in child.stdout.splitlines() if line.startswith("{")]
+    return json.loads(lines[-1]) if child.returncode == 0 and lines else None
+
+
+def table(rows: list[dict], fits: list[dict]) -> str:
+    lines = [f"{'sequence':28} {'preset':8} {'sharp':5} {'PSNR':>6} {'SSIM':>6} {'PSNRexp':>7} {'SSIMexp':>7} "
+             f"{'SSIMlow':>7} {'fps':>6} {'seconds':>8} {'Gaussians':>9}"]
+    for row in rows:
+        for state in ("off", "on"):
+            if state not in row:
+                continue
+            s = row[state]
+            lines.append(f"{row['sequence'][:28]:28} {row['preset']:8} {state:5} {s['psnr']:6.2f} {s['ssim']:6.3f} "
+                         f"{s['psnr_exp']:7.2f} {s['ssim_exp']:7.3f} {s['ssim_low']:7.3f} {s['fps']:6.2f} "
+                         f"{s['seconds']:8.1f} {s['gaussians']:9d}")
+    for fit in fits:
+        lines.append(f"fit {fit['sequence'][:24]} scale {fit['sharp_resolution_scale']:g} densify {fit.get('densify', 0):g}: fitted {fit['fitted_psnr']:.2f} dB "
+                     f"/ {fit['fitted_ssim']:.3f}, held out {fit['held_out_psnr']:.2f} dB / {fit['held_out_ssim']:.3f}, "
+                     f"JPEG vs lossless {fit['jpeg_against_lossless_psnr'] or float('nan'):.1f} dB, {fit['gaussians']} Gaussians")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cases", nargs="*", default=list(CASES), help="sequence:preset:frames (sequence: "
+                        + ", ".join(SEQUENCES) + ")")
+    parser.add_argument("--fit", action="append", default=[], help="sequence:frames:resolution_scale[:densify share]")
+    parser.add_argument("--set", action="append", default=[], help="section.key=value for every case")
+    parser.add_argument("--child", nargs=4, metavar=("SEQUENCE", "PRESET", "FRAMES", "OUT"), help=argparse.SUPPRESS)
+    parser.add_argument("--child-fit", nargs=4, metavar=("SEQUENCE", "FRAMES", "SCALE", "DENSIFY"), help=argparse.SUPPRESS)
+    parser.add_argument("--output", type=Path, default=RESULTS / "sharp_splats.json")
+    arguments = parser.parse_args()
+    if arguments.child:
+        sequence, preset, frames, out = arguments.child
+        print(json.dumps(child_case(Path(sequence), preset, int(frames), Path(out), arguments.set)))
+        return
+    if arguments.child_fit:
+        sequence, frames, scale, densify = arguments.child_fit
+        print(json.dumps(fit_bound(Path(sequence), int(frames), float(scale), float(densify))))
+        return
+    # Cases and fits of an earlier run of this script stay in the JSON unless run again (one case at a time fits
+    # a shared machine better).
+    earlier = json.loads(arguments.output.read_text()) if arguments.output.is_file() else {"cases": [], "fits": []}
+    rows, fits = [], []
+
+    def write() -> None:
+        key = lambda row: (row["sequence"], row.get("preset"), row["frames"], row.get("sharp_resolution_scale"),  # noqa: E731
+                           row.get("densify"))
+        done = {key(row) for row in rows + fits}
+        report = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                  "machine": f"{platform.machine()}, {os.cpu_count()} cores (shared: compare on/off within a row)",
+                  "cases": [row for row in earlier["cases"] if key(row) not in done] + rows,
+                  "fits": [row for row in earlier["fits"] if key(row) not in done] + fits}
+        arguments.output.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(arguments.output, json.dumps(report, indent=2) + "\n")
+
+    for case in arguments.cases:
+        name, preset, frames = case.split(":")
+        out = RESULTS / "runs" / f"sharp_splats_{name}_{preset}_{frames}"
+        extra = [item for setting in arguments.set for item in ("--set", setting)]
+        row = run_child(["--child", str(SEQUENCES[name]), preset, frames, str(out), *extra], out.with_suffix(".log"))
+        if row is None:
+            print(f"{case}: failed, see {out.with_suffix('.log')}", file=sys.stderr)
+            continue
+        rows.append(row)
+        write()
+        print(table([row], []), flush=True)
+    for fit in arguments.fit:
+        name, frames, scale, densify = (fit + ":0").split(":")[:4]
+        log = RESULTS / "runs" / f"sharp_splats_fit_{name}_{frames}_{scale}_{densify}.log"
+        row = run_child(["--child-fit", str(SEQUENCES[name]), frames, scale, densify], log)
+        if row is None:
+            print(f"fit {fit}: failed, see {log}", file=sys.stderr)
+            continue
+        fits.append(row)
+        write()
+        print(table([], [row]), flush=True)
+    print(table(rows, fits))
+
+
+if __name__ == "__main__":
+    main()

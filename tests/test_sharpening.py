@@ -1,0 +1,118 @@
+"""The sharpening pass after tracking (MappingStage.sharpen, GaussianMap.densify_colour_error): detail at the
+resolution a user views the map, built from frames read again a chunk at a time."""
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from tambridge.bridge.config import BridgeConfig
+from tambridge.gaussians.config import MapperConfig
+from tambridge.gaussians.mapper import GaussianMap, ViewImages
+from tambridge.io.synthetic import default_camera
+from tambridge.io.tum import open_sequence
+from tambridge.mapping.stage import MappingStage, resize_frame
+from tambridge.runlog import RunLog
+from tambridge.threads import TORCH_THREADS, compute_threads
+from tests.test_mapper import GroundTruthFrontend
+
+
+@pytest.fixture(autouse=True)
+def one_thread_each():
+    with compute_threads(TORCH_THREADS, 1):
+        yield
+
+
+def full_resolution_l1(stage: MappingStage) -> float:
+    """Mean colour L1 of the mapping views rendered at the camera's resolution (through their exposures)."""
+    errors = []
+    for view in stage.views:
+        frame = resize_frame(stage.sequence[view.frame_index], 1.0)
+        rendered = stage.map.render(stage.sequence.camera, stage.view_pose(view)).rgb
+        with torch.no_grad():
+            rendered = view.exposure.apply(rendered).clamp(0.0, 1.0)
+        errors.append(float((rendered - frame.rgb).abs().mean()))
+    return float(np.mean(errors))
+
+
+def coarse_stage(sequence, tmp_path, **mapper):
+    """A map of every 6th frame at ground-truth poses, mapped at a quarter of the synthetic 160x120 frames."""
+    config = dataclasses.replace(MapperConfig(), **{"resolution_scale": 0.25, "iterations": 10,
+                                                    "sharp_iterations_per_view": 0, **mapper})
+    run_log = RunLog(tmp_path / "run.log")
+    stage = MappingStage(sequence, config, BridgeConfig(enabled=False), run_log)
+    frontend = GroundTruthFrontend(sequence.ground_truth, every=6)
+    for index in range(0, len(sequence), 6):
+        stage.on_keyframe(frontend.event(index), sequence[index], dict(frontend.poses))
+    stage.finish(dict(frontend.poses))
+    run_log.close()
+    return stage, dict(frontend.poses)
+
+
+@pytest.mark.slow
+def test_sharpening_lowers_the_full_resolution_error_of_a_coarse_map(synthetic_sequence_dir, tmp_path):
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
+    stage, _ = coarse_stage(sequence, tmp_path)
+    before, count_before = full_resolution_l1(stage), len(stage.map)
+    state = copy.deepcopy(stage.state_dict())
+    after = {}
+    for densify_error in (0.0, 0.1):
+        stage.load_state_dict(copy.deepcopy(state))
+        stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=6,
+                                                  sharp_densify_error=densify_error, sharp_densify_fraction=0.02)
+        stage.sharpen()
+        after[densify_error] = full_resolution_l1(stage), len(stage.map)
+    assert after[0.0][1] == count_before
+    assert count_before < after[0.1][1] <= count_before + 4 * int(0.02 * 160 * 120)  # the worst 2 % of each view
+    assert after[0.0][0] < 0.95 * before and after[0.1][0] < 0.95 * before, (before, after)
+
+
+def test_sharpening_reads_frames_again_at_its_resolution_a_chunk_at_a_time(synthetic_sequence_dir, tmp_path, monkeypatch):
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
+    stage, _ = coarse_stage(sequence, tmp_path, window_size=3, iterations=2)
+    cache = dict(stage._cache)
+    stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=2, sharp_resolution_scale=1.5)
+    calls = []
+    optimise = stage.map.optimise
+
+    def recording(camera, views, schedule, exposures=None):
+        calls.append(((camera.width, camera.height), [tuple(images.rgb.shape) for _, images in views], list(schedule)))
+        return optimise(camera, views, schedule, exposures)
+
+    monkeypatch.setattr(stage.map, "optimise", recording)
+    stage.sharpen()
+    # 4 views in chunks of the window size (3), at 1.5 x 160x120, each view 2 steps; the mapping cache is untouched.
+    assert [len(shapes) for _, shapes, _ in calls] == [3, 1]
+    assert all(size == (240, 180) for size, _, _ in calls)
+    assert all(shape == (180, 240, 3) for _, shapes, _ in calls for shape in shapes)
+    assert [schedule for _, _, schedule in calls] == [[0, 1, 2, 0, 1, 2], [0, 0]]
+    assert stage._cache.keys() == cache.keys()
+    assert all(images.rgb.shape == (30, 40, 3) for images in stage._cache.values())
+
+
+def test_densify_colour_error_adds_one_pixel_gaussians_at_the_worst_pixels_within_budget():
+    camera = default_camera(40, 30)
+    gaussian_map = GaussianMap(MapperConfig())
+    gaussian_map.set_anchor_pose(0, np.eye(4))
+    # One grey Gaussian far off the frame's centre; the frame: black, with a bright 4x5 patch and a dim 3x3 one.
+    gaussian_map.add(0, torch.tensor([[5.0, 5.0, 2.0]]), torch.full((1, 3), 0.5), torch.tensor([0.01]))
+    rgb = torch.zeros((30, 40, 3))
+    rgb[10:14, 10:15] = 1.0
+    rgb[20:23, 30:33] = 0.3
+    depth_m = torch.full((30, 40), 2.0)
+    depth_m[10, 10] = 0.0  # no depth: never densified
+    images = ViewImages(rgb, depth_m)
+    assert gaussian_map.densify_colour_error(0, camera, images, None, threshold=0.2, fraction=1.0) == 19 + 9
+    gaussian_map = GaussianMap(MapperConfig())
+    gaussian_map.set_anchor_pose(0, np.eye(4))
+    gaussian_map.add(0, torch.tensor([[5.0, 5.0, 2.0]]), torch.full((1, 3), 0.5), torch.tensor([0.01]))
+    budget = 19.5 / (40 * 30)
+    assert gaussian_map.densify_colour_error(0, camera, images, None, threshold=0.2, fraction=budget) == 19
+    added = gaussian_map.gaussians(rows=torch.arange(1, 20))
+    pixels = camera.project(added.means_m.double().numpy(), added.means_m[:, 2].double().numpy())
+    assert np.all((pixels[:, 0] >= 9.5) & (pixels[:, 0] <= 14.5) & (pixels[:, 1] >= 9.5) & (pixels[:, 1] <= 13.5))
+    np.testing.assert_allclose(torch.exp(added.log_radii_m).numpy(), 2.0 / camera.mean_focal_px, rtol=1e-5)
+    np.testing.assert_allclose(added.rgb.numpy(), 1.0)
+    assert gaussian_map.densify_colour_error(0, camera, images, None, threshold=0.0, fraction=1.0) == 0  # 0: off
