@@ -9,6 +9,7 @@ import pytest
 from tambridge.state import dotted_items
 from tambridge.errors import TambridgeError
 from tambridge.evaluation.metrics import (
+    SCHEMA_VERSION,
     DeviceMetrics,
     RunMetrics,
     TrajectoryMetrics,
@@ -119,7 +120,7 @@ def test_report_without_optional_inputs_skips_their_sections(browser, tmp_path):
     assert page["images"] == []
     assert page["headings"] == ["Metrics"]
     assert page["cells"]["frames"] == "3" and page["cells"]["trajectory"] == "-" and page["cells"]["device"] == "cpu"
-    assert page["cells"]["schema_version"] == "1" and "gaussians" not in page["cells"]
+    assert page["cells"]["schema_version"] == str(SCHEMA_VERSION) and "gaussians" not in page["cells"]
 
 
 def test_reconstruct_run_report_shows_the_run_metrics(browser, synthetic_sequence_dir, tmp_path):
@@ -148,12 +149,13 @@ def test_metrics_files_round_trip_and_bad_ones_are_refused_in_one_line(tmp_path)
     write_metrics(path, metrics)
     assert read_metrics(path) == metrics
     written = path.read_text()
-    assert written.startswith('{\n  "schema_version": 1,\n  "sequence": "seq",')
+    assert written.startswith(f'{{\n  "schema_version": {SCHEMA_VERSION},\n  "sequence": "seq",')
     assert '"map"' not in written and '"rendering"' not in written  # no map: its keys are absent
     for text, message in (
         ("{", "not JSON"),
-        (written.replace('"schema_version": 1', '"schema_version": 0'), "schema_version 0; this tambridge reads schema_version 1"),
-        (written.replace('  "schema_version": 1,\n', ""), "no schema_version"),
+        (written.replace(f'"schema_version": {SCHEMA_VERSION}', '"schema_version": 0'),
+         f"schema_version 0; this tambridge reads schema_version {SCHEMA_VERSION}"),
+        (written.replace(f'  "schema_version": {SCHEMA_VERSION},\n', ""), "no schema_version"),
         (written.replace('"frames_lost"', '"lost_frames"'), "lacks key 'frames_lost'"),
         (written.replace('"ate_mean_m"', '"ate_average_m"'), "lacks key 'trajectory.ate_mean_m'"),
     ):

@@ -18,7 +18,7 @@ from pathlib import Path
 from tambridge.errors import TambridgeError
 from tambridge.files import atomic_write_text
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 """Bumped whenever a key of metrics.json is added, renamed or removed, or changes meaning."""
 
 OMITTED_WHEN_NONE = {"omitted_when_none": True}
@@ -55,11 +55,34 @@ class ViewScores:
 
 
 @dataclasses.dataclass(kw_only=True)
+class ExportedViewScores:
+    """The map as a user gets it: ``splats.ply`` reloaded and rendered with no per-view exposure at the poses of
+    ``trajectory.txt``, scored as :class:`ViewScores` are (full resolution, inside the valid region).
+
+    ``ssim_mapping_resolution``: the same renders and frames area-averaged to the mapping resolution (what the
+    map resolves; the gap to ``ssim`` is what a viewer at full resolution loses to soft splats).
+    ``first_view_colour_ratio``, ``last_view_colour_ratio``: per channel (R, G, B), the mean of the render over
+    the mean of the frame, at the first and the last mapping view, over the pixels the map covers (1: true colour;
+    None where it covers none).
+    """
+
+    frames: int
+    psnr_db: float | None
+    ssim: float | None
+    lpips: float | None
+    ssim_mapping_resolution: float | None
+    first_view_colour_ratio: list[float] | None
+    last_view_colour_ratio: list[float] | None
+
+
+@dataclasses.dataclass(kw_only=True)
 class RenderingMetrics:
-    """The map rendered at full resolution: at the novel (evaluation) views and at the mapping views."""
+    """The map rendered at full resolution: at the novel (evaluation) views and at the mapping views, through each
+    view's exposure (as the run optimised it); and at the novel views as exported (no exposure)."""
 
     novel_views: ViewScores
     mapping_views: ViewScores
+    novel_views_exported: ExportedViewScores
 
 
 @dataclasses.dataclass(kw_only=True)

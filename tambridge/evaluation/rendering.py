@@ -15,12 +15,13 @@ import dataclasses
 import functools
 import logging
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 import torch
 
 from tambridge.gaussians.losses import ssim as ssim_tensor
+from tambridge.io.tum import RgbdSequence
 
 logger = logging.getLogger("tambridge.evaluation.rendering")
 
@@ -107,3 +108,15 @@ def score_renders(pairs: Iterable[tuple[int, np.ndarray, np.ndarray]]) -> Render
         lpipses.append(lpips_value(rendered, observed))
     lpips = None if any(value is None for value in lpipses) else lpipses
     return RenderingScores(indices, psnrs, ssims, lpips)
+
+
+def score_frames(sequence: RgbdSequence, render_rgb: Callable[[int], torch.Tensor],
+                 frame_indices: list[int]) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """``(frame_index, rendered, observed)`` for :func:`score_renders`: ``render_rgb(frame_index)`` (H, W, 3) at the
+    sequence's full resolution, clipped to [0, 1], and the input frame, both cut to the sequence's valid region
+    (undistortion's border, where the frames have no data, is not scored)."""
+    top, bottom, left, right = sequence.valid_region
+    for index in frame_indices:
+        with torch.no_grad():
+            rendered = render_rgb(index).clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
+        yield index, rendered, sequence[index].rgb[top:bottom, left:right].astype(np.float32) / 255.0
