@@ -64,6 +64,11 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
                 "render / frame at the first view %s, at the last %s", exported_scores.psnr_db or float("nan"),
                 exported_scores.ssim or float("nan"), _rounded(exported_scores.first_view_colour_ratio),
                 _rounded(exported_scores.last_view_colour_ratio))
+    exposures = [view.exposure.parameters.detach().cpu().numpy() for view in mapping.views if view.exposure is not None]
+    if exposures:
+        gains, biases = np.exp(np.stack(exposures)[:, 0]), np.stack(exposures)[:, 1]
+        logger.info("view exposures: gains %.3f to %.3f, biases %+.3f to %+.3f (over views and channels)", gains.min(),
+                    gains.max(), biases.min(), biases.max())
     views_ate = None
     if sequence.ground_truth is not None and len(view_frames) >= 3:
         timestamps = sequence.timestamps_s[view_frames]
