@@ -29,6 +29,7 @@ from tambridge.checkpoint import (
 from tambridge.config import Config, check_config, config_for_camera, to_dict, to_yaml
 from tambridge.device import device_summary, resolve_device
 from tambridge.errors import TrackingFailedError
+from tambridge.evaluation.exported import ExportedMap
 from tambridge.evaluation.mapping import mapping_metrics
 from tambridge.evaluation.metrics import DeviceMetrics, RunMetrics, TrajectoryMetrics, WorldMetrics, write_metrics
 from tambridge.evaluation.report import REPORT_FILES, write_run_report
@@ -163,6 +164,7 @@ def reconstruct(
             gaussians = mesh = None
             if mapping is not None:
                 mapping.finish(tracking.keyframe_poses)
+                mapping.anchor_exposures()  # the colours splats.ply holds are the median view's
                 gaussians = mapping.map.world_gaussians()
             if config.mesh.enabled:
                 with run_log.stage("mesh"):
@@ -175,7 +177,7 @@ def reconstruct(
                 with run_log.stage("viewer"):
                     log_final_state(live_view, sequence, tracking, mapping)
         metrics, errors = evaluate_run(sequence, config, tracking, mapping, device, run_log, counters,
-                                       peak_memory_tracking_mb)
+                                       peak_memory_tracking_mb, output_dir)
         metrics.world = WorldMetrics(**world.summary())
         write_run_report(output_dir, metrics, sequence, errors, mapping, tracking.trajectory, counters.gaussian_counts)
         write_metrics(output_dir / "metrics.json", metrics)
@@ -317,15 +319,19 @@ def restore_run(checkpoint: Checkpoint, frontend: Frontend, mapping: MappingStag
 
 def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResult,
                  mapping: MappingStage | None, device: torch.device, run_log: RunLog, counters: RunCounters,
-                 peak_memory_tracking_mb: float) -> tuple[RunMetrics, TrajectoryErrors | None]:
+                 peak_memory_tracking_mb: float, output_dir: Path) -> tuple[RunMetrics, TrajectoryErrors | None]:
     """The run's metrics, and its trajectory's errors against the ground truth (None without one).
 
+    The map is scored as the run holds it and as exported: ``output_dir``'s splats.ply and trajectory.txt read back.
     The run's clock stops here: the map's rendering evaluation and the trajectory's are not part of it.
     """
     # End to end = what a user waits for to get trajectory and map.
     seconds_total = counters.elapsed_s()
     fps_per_stage = {name: len(sequence) / max(seconds, 1e-9) for name, seconds in run_log.stage_seconds.items()}
-    map_metrics = None if mapping is None else mapping_metrics(mapping, tracking, sequence, config.evaluation, run_log)
+    map_metrics = None
+    if mapping is not None:
+        exported = ExportedMap.from_run(output_dir, config.mapper, device)
+        map_metrics = mapping_metrics(mapping, tracking, sequence, config.evaluation, run_log, exported)
     metrics = RunMetrics(
         sequence=str(Path(sequence.folder).resolve()),
         frames=len(sequence),

@@ -11,7 +11,8 @@ from click.testing import CliRunner
 
 from cli import main
 from tambridge.errors import SequenceFormatError
-from tambridge.evaluation.mapping import reference_rgb, score_views, scores_of_frames, sharper_half
+from tambridge.evaluation.mapping import score_views, scores_of_frames, sharper_half
+from tambridge.evaluation.rendering import reference_rgb
 from tambridge.images import sharpness
 from tambridge.io.synthetic import RotationBursts, SynthOptions, write_synthetic_sequence
 from tambridge.io.tum import GT_RGB_FOLDER, open_sequence

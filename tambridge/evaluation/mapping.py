@@ -8,7 +8,8 @@ import numpy as np
 import torch
 
 from tambridge.evaluation.config import EvaluationConfig
-from tambridge.evaluation.rendering import RenderingScores, score_renders
+from tambridge.evaluation.exported import ExportedMap, score_exported
+from tambridge.evaluation.rendering import RenderingScores, score_frames, score_renders
 from tambridge.evaluation.metrics import (
     BridgeMetrics,
     MapMetrics,
@@ -36,32 +37,16 @@ def evaluation_frames(frame_count: int, every: int, mapping_frames: set[int]) ->
 
 def score_views(mapping: MappingStage, rendering_poses: np.ndarray, frame_indices: list[int],
                 against_sharp: bool = True) -> RenderingScores:
-    """PSNR/SSIM/LPIPS of renders at full resolution from ``rendering_poses`` (N, 4, 4) against the frames'
-    :func:`reference_rgb` (the sharp ground truth where the sequence has it and ``against_sharp``, else the input),
-    inside the sequence's valid region (undistortion's border, where the frames have no data, is not scored)."""
-    camera = mapping.sequence.camera
-    top, bottom, left, right = mapping.sequence.valid_region
-
-    def pairs():
-        for index in frame_indices:
-            rendered = mapping.map.render(camera, rendering_poses[index]).rgb
-            # A frame takes the exposure of the view it is anchored to (estimated from mapping views only).
-            exposure = mapping.anchor_view(index).exposure if mapping.views else None
-            if exposure is not None:
-                with torch.no_grad():
-                    rendered = exposure.apply(rendered)
-            rendered = rendered.clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
-            reference = reference_rgb(mapping.sequence, index, against_sharp)
-            yield index, rendered, reference[top:bottom, left:right].astype(np.float32) / 255.0
+    """PSNR/SSIM/LPIPS (:func:`score_frames`, against the sharp ground truth where the sequence has it and
+    ``against_sharp``) of the map rendered from ``rendering_poses`` (N, 4, 4) through the exposure of each frame's
+    anchor view (estimated from mapping views only)."""
+    def render_rgb(index: int) -> torch.Tensor:
+        rendered = mapping.map.render(mapping.sequence.camera, rendering_poses[index]).rgb
+        exposure = mapping.anchor_view(index).exposure if mapping.views else None
+        return rendered if exposure is None else exposure.apply(rendered)
 
     with mapping.threads():
-        return score_renders(pairs())
-
-
-def reference_rgb(sequence: RgbdSequence, index: int, sharp: bool = True) -> np.ndarray:
-    """What a render of frame ``index`` is scored against, (H, W, 3) uint8: its sharp ground-truth image where the
-    sequence has them (``gt_rgb/``, synthetic blurred sequences) and ``sharp``, else the input frame."""
-    return sequence.sharp_rgb(index) if sharp and sequence.has_sharp_rgb else sequence[index].rgb
+        return score_renders(score_frames(mapping.sequence, render_rgb, frame_indices, against_sharp))
 
 
 def sharper_half(sequence: RgbdSequence, frame_indices: list[int]) -> list[int]:
@@ -94,11 +79,13 @@ def blur_aware_scores(mapping: MappingStage, rendering_poses: np.ndarray, novel:
 
 
 def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: RgbdSequence, evaluation: EvaluationConfig,
-                    run_log: RunLog) -> MapMetrics:
+                    run_log: RunLog, exported: ExportedMap) -> MapMetrics:
     """What the mapping stage adds to metrics.json: rendering scores (novel and mapping views), map and bridge figures.
 
     Renders are at full resolution from the rendering poses (the bridge-refined views and the frames anchored on
-    them). With ground truth, the ATE of the mapping views' poses before (frontend) and after the bridge is added.
+    them) through the views' exposures; the novel views are scored again as ``exported`` shows them
+    (:func:`score_exported`). With ground truth, the ATE of the mapping views' poses before (frontend) and after
+    the bridge is added.
     """
     poses = mapping.rendering_poses(tracking.trajectory)
     view_frames = sorted(view.frame_index for view in mapping.views)
@@ -108,10 +95,21 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
         novel_scores = ViewScores(**novel_per_frame.summary())
         view_scores = ViewScores(**score_views(mapping, poses, view_frames).summary())
         blur_scores = blur_aware_scores(mapping, poses, novel_per_frame)
+        exported_scores = score_exported(exported, sequence, novel, (view_frames[0], view_frames[-1]) if view_frames else (0, 0),
+                                         mapping.mapper_config)
     refinements = [view.refinement for view in mapping.views if view.refinement is not None and not view.refinement.skipped]
     logger.info("rendering: novel views %.2f dB PSNR, %.3f SSIM (%d frames); mapping views %.2f dB, %.3f SSIM (%d); %d Gaussians",
                 novel_scores.psnr_db or float("nan"), novel_scores.ssim or float("nan"), len(novel),
                 view_scores.psnr_db or float("nan"), view_scores.ssim or float("nan"), len(view_frames), len(mapping.map))
+    logger.info("as exported (no exposure, trajectory.txt's poses): novel views %.2f dB PSNR, %.3f SSIM; colour ratio "
+                "render / frame at the first view %s, at the last %s", exported_scores.psnr_db or float("nan"),
+                exported_scores.ssim or float("nan"), _rounded(exported_scores.first_view_colour_ratio),
+                _rounded(exported_scores.last_view_colour_ratio))
+    exposures = [view.exposure.parameters.detach().cpu().numpy() for view in mapping.views if view.exposure is not None]
+    if exposures:
+        gains, biases = np.exp(np.stack(exposures)[:, 0]), np.stack(exposures)[:, 1]
+        logger.info("view exposures: gains %.3f to %.3f, biases %+.3f to %+.3f (over views and channels)", gains.min(),
+                    gains.max(), biases.min(), biases.max())
     views_ate = None
     if sequence.ground_truth is not None and len(view_frames) >= 3:
         timestamps = sequence.timestamps_s[view_frames]
@@ -125,7 +123,8 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
             # The run's metrics say why there is no ATE (trajectory_unavailable); the map's scores stand without it.
             logger.info("no ATE of the mapping views: %s", error)
     return MapMetrics(
-        rendering=RenderingMetrics(novel_views=novel_scores, mapping_views=view_scores, **blur_scores),
+        rendering=RenderingMetrics(novel_views=novel_scores, mapping_views=view_scores, novel_views_exported=exported_scores,
+                                   **blur_scores),
         gaussians=len(mapping.map),
         mapping_views=len(mapping.views),
         mapping_resolution=[mapping.camera.width, mapping.camera.height],
@@ -138,3 +137,7 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
             views_ate_rmse_m=views_ate,
         ),
     )
+
+
+def _rounded(ratio: list[float] | None) -> str:
+    return "-" if ratio is None else "/".join(f"{value:.3f}" for value in ratio)

@@ -63,14 +63,37 @@ class ScoredAgainst(Choice):
 
 
 @dataclasses.dataclass(kw_only=True)
+class ExportedViewScores:
+    """The map as a user gets it: ``splats.ply`` reloaded and rendered with no per-view exposure at the poses of
+    ``trajectory.txt``, scored as :class:`ViewScores` are (full resolution, inside the valid region).
+
+    ``ssim_mapping_resolution``: the same renders and frames area-averaged to the mapping resolution (what the
+    map resolves; the gap to ``ssim`` is what a viewer at full resolution loses to soft splats).
+    ``first_view_colour_ratio``, ``last_view_colour_ratio``: per channel (R, G, B), the mean of the render over
+    the mean of the frame, at the first and the last mapping view, over the pixels the map covers (1: true colour;
+    None where it covers none).
+    """
+
+    frames: int
+    psnr_db: float | None
+    ssim: float | None
+    lpips: float | None
+    ssim_mapping_resolution: float | None
+    first_view_colour_ratio: list[float] | None
+    last_view_colour_ratio: list[float] | None
+
+
+@dataclasses.dataclass(kw_only=True)
 class RenderingMetrics:
-    """The map rendered at full resolution: at the novel (evaluation) views and at the mapping views, both scored
-    against ``scored_against``; ``novel_views_sharper_half``: the novel views whose input frames are the sharper
-    half (variance of the Laplacian); ``novel_views_against_input``: with sharp ground truth only, the novel views
-    scored against the (blurred) input frames instead."""
+    """The map rendered at full resolution, scored against ``scored_against``: at the novel (evaluation) views and
+    at the mapping views through each view's exposure (as the run optimised it), and at the novel views as exported
+    (no exposure). ``novel_views_sharper_half``: the novel views whose input frames are the sharper half (variance
+    of the Laplacian); ``novel_views_against_input``: with sharp ground truth only, the novel views scored against
+    the (blurred) input frames instead."""
 
     novel_views: ViewScores
     mapping_views: ViewScores
+    novel_views_exported: ExportedViewScores
     scored_against: ScoredAgainst
     novel_views_sharper_half: ViewScores
     novel_views_against_input: ViewScores | None = dataclasses.field(default=None, metadata=OMITTED_WHEN_NONE)

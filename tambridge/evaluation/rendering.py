@@ -15,12 +15,13 @@ import dataclasses
 import functools
 import logging
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 import torch
 
 from tambridge.gaussians.losses import ssim as ssim_tensor
+from tambridge.io.tum import RgbdSequence
 
 logger = logging.getLogger("tambridge.evaluation.rendering")
 
@@ -107,3 +108,22 @@ def score_renders(pairs: Iterable[tuple[int, np.ndarray, np.ndarray]]) -> Render
         lpipses.append(lpips_value(rendered, observed))
     lpips = None if any(value is None for value in lpipses) else lpipses
     return RenderingScores(indices, psnrs, ssims, lpips)
+
+
+def reference_rgb(sequence: RgbdSequence, index: int, sharp: bool = True) -> np.ndarray:
+    """What a render of frame ``index`` is scored against, (H, W, 3) uint8: its sharp ground-truth image where the
+    sequence has them (``gt_rgb/``, synthetic blurred sequences) and ``sharp``, else the input frame."""
+    return sequence.sharp_rgb(index) if sharp and sequence.has_sharp_rgb else sequence[index].rgb
+
+
+def score_frames(sequence: RgbdSequence, render_rgb: Callable[[int], torch.Tensor],
+                 frame_indices: list[int], against_sharp: bool = True) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """``(frame_index, rendered, observed)`` for :func:`score_renders`: ``render_rgb(frame_index)`` (H, W, 3) at the
+    sequence's full resolution, clipped to [0, 1], and the frame's :func:`reference_rgb`, both cut to the
+    sequence's valid region (undistortion's border, where the frames have no data, is not scored)."""
+    top, bottom, left, right = sequence.valid_region
+    for index in frame_indices:
+        with torch.no_grad():
+            rendered = render_rgb(index).clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
+        reference = reference_rgb(sequence, index, against_sharp)
+        yield index, rendered, reference[top:bottom, left:right].astype(np.float32) / 255.0

@@ -2,7 +2,8 @@
 
 Sections appear only when their data exists: trajectory against ground truth (top view and ATE over time with
 the worst 2-second segment shaded and named, COLMAP's Sim(3)-aligned path too when given), renders beside input
-frames, an interactive viewer of splats.ply (``viewer/``, :mod:`tambridge.export.web_viewer`), time per stage,
+frames, the map as exported (scores and novel views as a viewer shows splats.ply), an interactive viewer of
+splats.ply (``viewer/``, :mod:`tambridge.export.web_viewer`), time per stage,
 Gaussian count over time, and the metrics table (every scalar of ``metrics.json``). Images are linked by relative paths,
 so the folder can be moved or zipped as a whole. Every file is written atomically.
 """
@@ -25,6 +26,7 @@ import numpy as np  # noqa: E402
 
 from tambridge.state import dotted_items  # noqa: E402
 from tambridge.evaluation.colmap import is_monocular_trajectory_file  # noqa: E402
+from tambridge.evaluation.exported import ExportedMap  # noqa: E402
 from tambridge.evaluation.metrics import RunMetrics, metrics_json, read_metrics  # noqa: E402
 from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
 from tambridge.evaluation.trajectory import (  # noqa: E402
@@ -40,6 +42,8 @@ from tambridge.trajectory import Trajectory, read_tum_trajectory  # noqa: E402
 logger = logging.getLogger("tambridge.evaluation.report")
 
 MAX_RENDER_ROWS = 6
+EXPORTED_DIFFERENCE_RANGE = 0.3
+"""The difference image of the "As exported" section spans -0.3 to 0.3 (colours in [0, 1])."""
 
 
 @dataclasses.dataclass
@@ -51,7 +55,7 @@ class RenderPair:
     rendered_rgb: np.ndarray
 
 
-REPORT_FILES = ("index.html", "trajectory.png", "renders.png", "stages.png", "gaussians.png",
+REPORT_FILES = ("index.html", "trajectory.png", "renders.png", "exported.png", "stages.png", "gaussians.png",
                 *(f"{RUN_VIEWER_FOLDER.name}/{name}" for name in VIEWER_FILES))
 """Every file :func:`write_report` may write into the report folder."""
 
@@ -64,6 +68,7 @@ def write_report(
     gaussian_counts: tuple[np.ndarray, np.ndarray] | None = None,
     title: str = "tambridge run",
     web_viewer: bool = False,
+    exported_pairs: Sequence[RenderPair] = (),
 ) -> Path:
     """Write ``report_dir/index.html`` and its PNGs; returns the HTML path.
 
@@ -71,7 +76,8 @@ def write_report(
     each estimate against the same ground truth (e.g. the run's SE(3)-aligned trajectory and COLMAP's Sim(3)
     one). ``render_pairs``: at most :data:`MAX_RENDER_ROWS` are shown, evenly spread. ``gaussian_counts``:
     frame indices (N,) and the map's Gaussian count after each (N,). ``web_viewer``: embed ``report_dir/viewer/``
-    (written by :func:`~tambridge.export.web_viewer.write_run_viewer`).
+    (written by :func:`~tambridge.export.web_viewer.write_run_viewer`). ``exported_pairs``: novel views' frames
+    beside splats.ply rendered as exported (:func:`exported_section`).
     """
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
@@ -97,6 +103,8 @@ def write_report(
             "<h2>Renders</h2><p>Input frames (left) beside the Gaussian map rendered at their poses (right).</p>"
             '<img src="renders.png" alt="renders beside input frames">'
         )
+    if metrics.map is not None or exported_pairs:
+        sections.append(exported_section(metrics, exported_pairs, report_dir / "exported.png"))
     if web_viewer:
         sections.append(_web_viewer_section())
     if metrics.seconds_per_stage:
@@ -179,6 +187,39 @@ def _web_viewer_section() -> str:
         f'<iframe id="web-viewer" src="{viewer}" title="splats.ply viewer" loading="lazy" '
         'style="display: block; box-sizing: border-box; width: 100%; aspect-ratio: 4 / 3; border: 1px solid #ddd;"></iframe>'
     )
+def exported_section(metrics: RunMetrics, pairs: Sequence[RenderPair], path: Path) -> str:
+    """The "As exported" section: novel-view scores through the views' exposures beside those of splats.ply as a
+    viewer shows it, and (when ``pairs`` are given, written to ``path``) input frame, render as exported and their
+    difference for a few novel views."""
+    rows = ""
+    if metrics.map is not None:
+        rendering = metrics.map.rendering
+        for name, scores in (("through each view's exposure (the run's own)", rendering.novel_views),
+                             ("as exported (splats.ply, no exposure, trajectory.txt's poses)", rendering.novel_views_exported)):
+            rows += (f"<tr><td>{html.escape(name)}</td><td>{format_metric(scores.psnr_db)}</td>"
+                     f"<td>{format_metric(scores.ssim)}</td></tr>")
+    table = f'<table class="small"><tr><th>novel views</th><th>PSNR [dB]</th><th>SSIM</th></tr>{rows}</table>' if rows else ""
+    figure = ""
+    if pairs:
+        _plot_exported_pairs(pairs, path)
+        figure = ('<p>Input frame, splats.ply rendered as exported at its pose, and their difference in brightness '
+                  '(red: the render is brighter).</p>'
+                  f'<img src="{path.name}" alt="input frames, renders as exported and their difference">')
+    return "<h2>As exported</h2>" + table + figure
+
+
+def _plot_exported_pairs(pairs: Sequence[RenderPair], path: Path) -> None:
+    figure, axes = plt.subplots(len(pairs), 3, figsize=(12, 3 * len(pairs)), squeeze=False)
+    for row, pair in zip(axes, pairs):
+        difference = (pair.rendered_rgb.astype(np.float32) - pair.input_rgb.astype(np.float32)).mean(axis=2) / 255.0
+        row[0].imshow(pair.input_rgb)
+        row[1].imshow(pair.rendered_rgb)
+        shown = row[2].imshow(difference, cmap="RdBu_r", vmin=-EXPORTED_DIFFERENCE_RANGE, vmax=EXPORTED_DIFFERENCE_RANGE)
+        figure.colorbar(shown, ax=row[2], fraction=0.035)
+        for axis, kind in zip(row, ("input", "as exported", "render - input")):
+            axis.set_title(f"{pair.label}: {kind}", fontsize=9)
+            axis.axis("off")
+    _save(figure, path)
 
 
 def _save(figure, path: Path) -> None:
@@ -244,6 +285,8 @@ td.value {{ font-family: monospace; }}
 
 REPORT_RENDERS = 4
 """Frames rendered from the map for the report's grid (at the mapping resolution: cheap)."""
+REPORT_EXPORTED_VIEWS = 3
+"""Novel views rendered as exported for the report (at full resolution, as a viewer shows them)."""
 
 
 def write_run_report(output_dir: Path, metrics: RunMetrics, sequence: RgbdSequence, errors: TrajectoryErrors | None,
@@ -269,4 +312,20 @@ def write_run_report(output_dir: Path, metrics: RunMetrics, sequence: RgbdSequen
         write_run_viewer(output_dir, sequence.camera)
     write_report(output_dir / "report", metrics, trajectory_errors, pairs,
                  (counts[:, 0], counts[:, 1]) if len(counts) else None, title=f"tambridge: {metrics.sequence}",
-                 web_viewer=web_viewer)
+                 web_viewer=web_viewer,
+                 exported_pairs=exported_pairs(output_dir, sequence, mapping) if mapping is not None else ())
+
+
+def exported_pairs(output_dir: Path, sequence: RgbdSequence, mapping: MappingStage) -> list[RenderPair]:
+    """:data:`REPORT_EXPORTED_VIEWS` novel views (frames that are no mapping view, evenly spread): the input frame
+    beside ``output_dir``'s splats.ply rendered at its trajectory.txt pose, at full resolution."""
+    view_frames = {view.frame_index for view in mapping.views}
+    novel = [index for index in range(len(sequence)) if index not in view_frames]
+    if not novel:
+        return []
+    exported = ExportedMap.from_run(output_dir, mapping.mapper_config, mapping.device)
+    chosen = [novel[i] for i in np.unique(np.linspace(0, len(novel) - 1, REPORT_EXPORTED_VIEWS).astype(int))]
+    with mapping.threads():
+        return [RenderPair(f"frame {index}", sequence[index].rgb,
+                           rgb_uint8(exported.render(sequence.camera, index).rgb.clamp(0.0, 1.0).cpu().numpy()))
+                for index in chosen]

@@ -7,6 +7,13 @@ import dataclasses
 from tambridge.settings import FRACTION, NON_NEGATIVE, POSITIVE, UNIT, Choice, Range, at_least, setting
 
 
+class ExposureAnchor(Choice):
+    """What fixes the map's colour scale, which per-view exposures leave free (see gaussians.mapper.ViewExposure)."""
+
+    median = "median"
+    first_view = "first_view"
+
+
 class RenderBackend(Choice):
     """The rasteriser backends (:mod:`tambridge.gaussians.rasterizer`)."""
 
@@ -63,6 +70,10 @@ class MapperConfig:
     exposure_compensation: bool = setting(True, "a per-view affine colour (gain and bias per channel) between the map "
                                                 "and each view")
     lr_exposure: float = setting(1e-2, "Adam learning rate of the per-view exposure", POSITIVE)
+    exposure_anchor: ExposureAnchor = setting(ExposureAnchor.median, "the map's colours are those of: median (the "
+                                              "median view's exposure) or first_view (the first view's)")
+    exposure_prior: float = setting(0.3, "weight of the prior pulling each view's exposure to the identity (against "
+                                         "the gain-colour ambiguity; 0: none)", NON_NEGATIVE)
     densify_silhouette: float = setting(0.99, "densify where the rendered silhouette is below this (the paper's gamma)",
                                         FRACTION)
     densify_depth_factor: float = setting(50.0, "... or where the map lies this many median depth residuals behind the "

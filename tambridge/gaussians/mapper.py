@@ -94,18 +94,25 @@ class ViewExposure:
 
     Without it the map's colours follow whichever views were optimised last, and earlier parts of the sequence
     are rendered too bright or too dark.
-    The first view is ``frozen`` at the identity, which fixes the map's colour scale (gain and colours are
-    otherwise ambiguous). ``parameters`` (2, 3): log gains, biases; optimised with Adam at ``learning_rate``.
+    Gain and colours are ambiguous: scaling every exposure of a window and dividing the colours its views see
+    leaves the loss unchanged, so without a pull the exposures of the views optimised together random-walk away
+    from the identity, and the map's colours with them (the first view, ``frozen`` at the identity, holds only
+    the colours it sees and only while it is in the window). ``prior`` pulls the log gains and biases to 0 (an L2
+    prior of weight ``prior / 2``, as Adam's weight decay), so that the map keeps the colours of a typical view and
+    the exposures take only what real changes of the camera's exposure need; :meth:`rebase` (with
+    :meth:`GaussianMap.recolour`) moves the colour scale itself exactly.
+    ``parameters`` (2, 3): log gains, biases; optimised with Adam at ``learning_rate``.
     A new exposure lives on ``device``, or on the device of the ``parameters`` it starts from.
     """
 
     def __init__(self, parameters: torch.Tensor | None = None, learning_rate: float = 0.0, frozen: bool = False,
-                 device: str | torch.device = "cpu") -> None:
+                 device: str | torch.device = "cpu", prior: float = 0.0) -> None:
         initial = torch.zeros((2, 3), device=device) if parameters is None else parameters.detach().clone()
         assert initial.shape == (2, 3), initial.shape
         self.parameters = initial.requires_grad_(not frozen)
         self.frozen = frozen
-        self._optimiser = None if frozen else torch.optim.Adam([self.parameters], lr=learning_rate, eps=ADAM_EPS)
+        self._optimiser = None if frozen else torch.optim.Adam([self.parameters], lr=learning_rate, eps=ADAM_EPS,
+                                                                weight_decay=prior)
 
     def to(self, device: str | torch.device) -> ViewExposure:
         """This exposure on ``device``, Adam state included: itself when it is there already, else a copy."""
@@ -113,7 +120,7 @@ class ViewExposure:
             return self
         moved = ViewExposure(self.parameters.to(device), frozen=self.frozen)
         if self._optimiser is not None:
-            # Restores the learning rate too; Adam casts its moments to the device of the parameter they belong to.
+            # Restores the learning rate and prior too; Adam casts its moments to the device of their parameter.
             moved._optimiser.load_state_dict(self._optimiser.state_dict())
         return moved
 
@@ -125,6 +132,14 @@ class ViewExposure:
         """(M, 3) colours seen by this view -> map colours (no gradient)."""
         with torch.no_grad():
             return (rgb - self.parameters[1]) * torch.exp(-self.parameters[0])
+
+    def rebase(self, reference: torch.Tensor) -> None:
+        """Re-express this exposure for map colours recoloured by the exposure ``reference`` (2, 3) (colours
+        ``C' = exp(log_gain_ref) C + bias_ref``): afterwards :meth:`apply` gives of ``C'`` what it gave of ``C``."""
+        with torch.no_grad():
+            log_gain = self.parameters[0] - reference[0]
+            self.parameters[1] -= torch.exp(log_gain) * reference[1]
+            self.parameters[0] = log_gain
 
     def step(self) -> None:
         """One Adam step on the gradient the last backward pass left (none when frozen), then clear it."""
@@ -142,7 +157,7 @@ class ViewExposure:
         """The exposure :meth:`state_dict` describes, on the device of its parameters."""
         exposure = cls(state["parameters"], frozen=state["frozen"])
         if exposure._optimiser is not None:
-            exposure._optimiser.load_state_dict(state["adam"])  # the learning rate too
+            exposure._optimiser.load_state_dict(state["adam"])  # the learning rate and prior too
         return exposure
 
 
@@ -405,6 +420,12 @@ class GaussianMap:
             # Colours are optimised directly (as SplaTAM does) and kept in the displayable range.
             params["rgb"].clamp_(0.0, 1.0)
         return steps
+
+    def recolour(self, exposure: ViewExposure) -> None:
+        """Replace every Gaussian's colour by ``exposure.apply`` of it (kept in [0, 1]): the map in another view's
+        colours (see :meth:`ViewExposure.rebase`)."""
+        with torch.no_grad():
+            self._params["rgb"] = exposure.apply(self._params["rgb"]).clamp(0.0, 1.0)
 
     def world_gaussians(self) -> GaussianTensors:
         """Detached world-frame Gaussians (for export)."""

@@ -33,7 +33,7 @@ from tambridge.bridge.view_selection import Selection, select_view
 from tambridge.state import attribute_state, restore_attributes
 from tambridge.bridge.config import BridgeConfig
 from tambridge.frontend.contract import KeyframeEvent, TrackResult
-from tambridge.gaussians.config import MapperConfig
+from tambridge.gaussians.config import ExposureAnchor, MapperConfig
 from tambridge.gaussians.mapper import GaussianMap, ViewExposure, ViewImages, backproject
 from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.geometry import inverse, transform_points
@@ -110,13 +110,31 @@ class MappingStage:
         return self.keyframe_poses[view.keyframe_id] @ view.keyframe_from_view
 
     def new_exposure(self) -> ViewExposure | None:
-        """The exposure of a new view: frozen at the identity for the first (it fixes the map's colour scale),
-        else starting from the latest view's; None when ``mapper.exposure_compensation`` is off."""
+        """The exposure of a new view, pulled to the identity by ``mapper.exposure_prior`` (see
+        :class:`ViewExposure`): the first starts at the identity (frozen there with ``mapper.exposure_anchor``
+        first_view: it then fixes the map's colour scale), any other from the latest view's; None when
+        ``mapper.exposure_compensation`` is off."""
         if not self.mapper_config.exposure_compensation:
             return None
+        config = self.mapper_config
         if not self.views:
-            return ViewExposure(frozen=True, device=self.device)
-        return ViewExposure(self.views[-1].exposure.parameters, self.mapper_config.lr_exposure)
+            return ViewExposure(learning_rate=config.lr_exposure, frozen=config.exposure_anchor is ExposureAnchor.first_view,
+                                device=self.device, prior=config.exposure_prior)
+        return ViewExposure(self.views[-1].exposure.parameters, config.lr_exposure, prior=config.exposure_prior)
+
+    def anchor_exposures(self) -> None:
+        """With ``mapper.exposure_anchor`` median, make the median exposure of the views the identity (per channel,
+        log gain and bias), exactly: the map is recoloured into the median view's colours and every exposure rebased
+        on it, so that every view renders as before (up to colours leaving [0, 1]) and the map's own colours, those
+        a .ply holds, are a typical view's rather than the first view's or wherever the gain-colour ambiguity left
+        them. Nothing without exposures."""
+        if not self.views or self.views[0].exposure is None or self.mapper_config.exposure_anchor is not ExposureAnchor.median:
+            return
+        with torch.no_grad():
+            reference = torch.quantile(torch.stack([view.exposure.parameters for view in self.views]), 0.5, dim=0)
+            self.map.recolour(ViewExposure(reference, frozen=True))
+            for view in self.views:
+                view.exposure.rebase(reference)
 
     @staticmethod
     def exposures(views: list[MappingView]) -> list[ViewExposure | None] | None:
@@ -224,6 +242,7 @@ class MappingStage:
         # Every other step on the new view, the others cycle through the earlier overlapping ones.
         schedule = [0 if k % 2 == 0 or not window else 1 + (k // 2) % len(window) for k in range(self.mapper_config.iterations)]
         losses = self.map.optimise(self.camera, views, schedule, self.exposures([view] + window))
+        self.anchor_exposures()
         removed = self.map.prune(self.camera, world_from_camera)
         if self.mapper_config.coverage_unexplained:
             view.unexplained = self.map.unexplained_fraction(self.camera, world_from_camera, images.depth_m)
