@@ -20,6 +20,8 @@ class BridgeConfig:
                                  "adds nothing new", FRACTION)
     beta: int = setting(20, "eq. 3: a keyframe must share at least this many map points with the previous one",
                         NON_NEGATIVE)
+    refine_poses: bool = setting(False, "refine each view's pose against the Gaussian map (eqs. 1, 4, 5); off: the "
+                                        "views keep their tracked poses (docs/fusion_bridge.md has the measurements)")
     gamma: float = setting(0.99, "eq. 5: pixels take part in the refinement where the rendered silhouette exceeds this",
                            FRACTION)
     w_reprojection: float = setting(1.5, "w1: weight of the keypoint reprojection loss (per pixel)", NON_NEGATIVE)
@@ -31,5 +33,16 @@ class BridgeConfig:
                                   "unit translation (m)", POSITIVE)
     depth_outlier_factor: float = setting(10.0, "depth gate: a pixel whose depth residual exceeds this many median "
                                                 "residuals is an outlier", POSITIVE)
+    sharpest_window: int = setting(6, "a selected keyframe is mapped through the sharpest tracked frame among it and "
+                                      "this many frames before it that passes eq. 3 (0: the keyframe itself)",
+                                   NON_NEGATIVE)
+    blur_reject_ratio: float = setting(0.35, "a view whose sharpness is below this share of the median over the recent "
+                                             "tracked frames is not mapped (0: never skipped)", UNIT)
+    sharpness_median_frames: int = setting(60, "tracked frames the recent median sharpness is taken over", at_least(1))
+    reprojection_floor_px: float = setting(0.0, "the refinement is skipped where the keyframe's matched points reproject "
+                                                "within this mean error at the frontend pose (mapping-resolution px; "
+                                                "0: never skipped)", NON_NEGATIVE)
+    sharpness_weighted_colour: bool = setting(True, "scale the colour term by the view's sharpness over the recent "
+                                                    "median (at most 1): a blurred view pulls its pose less by colour")
     min_gated_fraction: float = setting(0.05, "below this share of gated pixels (and with no matched points) the "
                                               "frontend pose is kept", UNIT)
