@@ -216,7 +216,19 @@ def _parse_size(size: str) -> tuple[int, int]:
 @click.option("--size", default="160x120", show_default=True, help="WIDTHxHEIGHT.")
 @click.option("--depth-noise", type=float, default=0.0, help="Depth noise sigma at 1 m, metres (grows with z^2).")
 @click.option("--colour-noise", type=float, default=0.0, help="Colour noise sigma, in [0, 1] units.")
-@click.option("--motion-blur", type=int, default=1, help="Sub-frames averaged per frame (1 = none).")
+@click.option("--motion-blur", "exposure", type=click.FloatRange(min=0.0), default=0.0, show_default=True, metavar="EXPOSURE_S",
+              help="Exposure time, seconds (e.g. 0.033): each colour frame is the mean of sharp renders along the true "
+                   "path over [t - EXPOSURE_S/2, t + EXPOSURE_S/2], and gt_rgb/ keeps the sharp frames; depth stays "
+                   "sharp. 0: no blur. (Until this version the value was a count of sub-frames.)")
+@click.option("--blur-subframes", type=click.IntRange(min=1), default=None,
+              help="Sharp renders averaged per blurred frame (default: enough that the image moves at most half a "
+                   "pixel between them).")
+@click.option("--rotation-bursts", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Bursts of fast rotation (the camera tilts out and back), evenly spaced along the loop.")
+@click.option("--burst-speed", type=click.FloatRange(min=0.0, min_open=True), default=90.0, show_default=True,
+              help="Angular speed of the bursts, degrees per second.")
+@click.option("--burst-duration", type=click.FloatRange(min=0.0, min_open=True), default=1.5, show_default=True,
+              help="Length of each burst, seconds.")
 @click.option("--supersampling", type=click.IntRange(min=1), default=1, show_default=True,
               help="Odd k: k x k rays per pixel averaged (anti-aliased colour, as a camera's pixel integrates); ~k^2 slower.")
 @click.option("--colour-baseline", type=float, default=0.0, show_default=True,
@@ -224,16 +236,18 @@ def _parse_size(size: str) -> tuple[int, int]:
 @click.option("--colour-focal-scale", type=float, default=1.0, show_default=True,
               help="The separate colour camera's focal length over the depth camera's (Kinect v1: about 0.9).")
 @click.option("--seed", type=int, default=0)
-def synth(output_dir, frames, size, depth_noise, colour_noise, motion_blur, supersampling, colour_baseline,
-          colour_focal_scale, seed) -> None:
+def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_subframes, rotation_bursts, burst_speed,
+          burst_duration, supersampling, colour_baseline, colour_focal_scale, seed) -> None:
     """Write a synthetic TUM-layout sequence (textured room, closed loop) with exact ground truth."""
-    from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
+    from tambridge.io.synthetic import RotationBursts, SynthOptions, write_synthetic_sequence
 
     width, height = _parse_size(size)
     if supersampling % 2 == 0:
         raise click.BadParameter(f"{supersampling}: must be odd (the centre ray gives the depth)", param_hint="--supersampling")
     options = SynthOptions(frames, width, height, depth_noise_m=depth_noise, colour_noise=colour_noise,
-                           motion_blur_samples=motion_blur, supersampling=supersampling, seed=seed,
+                           exposure_s=exposure, blur_subframes=blur_subframes,
+                           bursts=RotationBursts(rotation_bursts, burst_speed, burst_duration),
+                           supersampling=supersampling, seed=seed,
                            colour_baseline_m=colour_baseline, colour_focal_scale=colour_focal_scale)
     write_synthetic_sequence(output_dir, options)
     click.echo(f"wrote {frames} frames to {output_dir}")

@@ -2,9 +2,10 @@
 
 The scene is a set of textured rectangles (room walls, floor, ceiling, box faces). Each face carries its
 own non-repeating texture (multi-scale noise plus random shapes), so ORB finds corners everywhere. The
-camera follows a smooth closed path that ends where it started, for loop-closure tests. Sequences are
-written in the TUM layout (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``, ``camera.yaml``), so they go
-through the same reader as real data.
+camera follows a smooth closed path that ends where it started, for loop-closure tests, optionally with
+bursts of fast rotation; colour frames can integrate over an exposure along that true path (motion blur),
+with the sharp frames kept in ``gt_rgb/``. Sequences are written in the TUM layout (``rgb.txt``,
+``depth.txt``, ``groundtruth.txt``, ``camera.yaml``), so they go through the same reader as real data.
 """
 
 from __future__ import annotations
@@ -18,9 +19,10 @@ import numpy as np
 import yaml
 
 from tambridge.camera import Camera
+from tambridge.errors import ConfigError
 from tambridge.files import atomic_path, atomic_write_text
-from tambridge.geometry import interpolate_pose, look_at
-from tambridge.io.tum import read_file_list
+from tambridge.geometry import inverse, look_at, transform_points
+from tambridge.io.tum import GT_RGB_FOLDER, read_file_list
 from tambridge.trajectory import Trajectory, format_tum_trajectory
 
 SYNTHETIC_DEPTH_SCALE = 5000.0
@@ -140,13 +142,94 @@ def loop_path(frame_count: int) -> np.ndarray:
     The camera circles an ellipse of 0.4 x 0.25 m at 1.4 m height, looking across the room towards +x
     with a yaw swing of +-25 degrees, so consecutive frames overlap and the end revisits the start.
     """
+    return _loop_poses(np.arange(frame_count), frame_count)
+
+
+def _loop_poses(frame_positions: np.ndarray, frame_count: int) -> np.ndarray:
+    """The loop's poses (N, 4, 4) at fractional frame positions (N,) of a ``frame_count``-frame loop."""
     poses = []
-    for phase in np.arange(frame_count) / frame_count * 2.0 * np.pi:
+    for phase in np.asarray(frame_positions, np.float64) / frame_count * 2.0 * np.pi:
         eye = np.array([-0.8 + 0.4 * np.cos(phase), 0.25 * np.sin(phase), 1.4 + 0.05 * np.sin(2 * phase)])
         yaw = np.deg2rad(25.0) * np.sin(phase)
         target = eye + np.array([np.cos(yaw), np.sin(yaw), -0.25 + 0.1 * np.cos(phase)])
         poses.append(look_at(eye, target))
     return np.stack(poses)
+
+
+BURST_RAMP_S = 0.1
+"""Seconds over which a rotation burst's speed ramps up, reverses through zero, and ramps down."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RotationBursts:
+    """Fast swings of the camera about its own x axis (a tilt), added to the loop: ``count`` bursts of
+    ``duration_s`` each, evenly spaced with equal stretches of the plain loop before, between and after them.
+
+    In a burst the camera tilts out at ``speed_deg_s`` and back to the loop at the same speed, so the loop
+    still closes; the speed ramps with a half cosine over :data:`BURST_RAMP_S` at the start, the turn and
+    the end. The loop turns mostly about the vertical, nearly orthogonal to the tilt, so outside those ramps
+    the camera's angular speed stays near ``speed_deg_s`` (the loop's own turn adds or takes a little).
+    Bursts alternate up and down.
+    """
+
+    count: int = 0
+    speed_deg_s: float = 90.0
+    duration_s: float = 1.5
+
+    def windows_s(self, sequence_s: float) -> list[tuple[float, float]]:
+        """(start, end) seconds of each burst in a sequence ``sequence_s`` long."""
+        gap_s = (sequence_s - self.count * self.duration_s) / (self.count + 1)
+        return [(gap_s * (i + 1) + self.duration_s * i, (gap_s + self.duration_s) * (i + 1)) for i in range(self.count)]
+
+    def tilt_rad(self, times_s: np.ndarray, sequence_s: float) -> np.ndarray:
+        """The tilt angle (N,) in radians at ``times_s`` (N,): the integral of the ramped speed profile."""
+        times_s = np.asarray(times_s, np.float64)
+        angle = np.zeros_like(times_s)
+        speed = np.deg2rad(self.speed_deg_s)
+        ramp, duration = BURST_RAMP_S, self.duration_s
+        for index, (start_s, _) in enumerate(self.windows_s(sequence_s)):
+            tau = times_s - start_s
+            # The speed is +1, -1, 0 (times ``speed``) joined by smooth steps: up at 0, down through 0 at the
+            # middle, up to 0 at the end; the angle is the sum of the steps' integrals.
+            swing = _step_integral(tau, ramp) - 2.0 * _step_integral(tau - (duration - ramp) / 2.0, ramp) \
+                + _step_integral(tau - (duration - ramp), ramp)
+            angle += (1.0 if index % 2 == 0 else -1.0) * speed * swing
+        return angle
+
+
+def _step_integral(tau_s: np.ndarray, ramp_s: float) -> np.ndarray:
+    """Integral from -inf to ``tau_s`` of a smooth unit step: 0 before 0, a half cosine up to 1 over ``ramp_s``."""
+    inside = np.clip(tau_s, 0.0, ramp_s)
+    return inside / 2.0 - ramp_s / (2.0 * np.pi) * np.sin(np.pi * inside / ramp_s) + np.maximum(tau_s - ramp_s, 0.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraPath:
+    """The true camera motion of a synthetic sequence, continuous in time: the loop plus rotation bursts.
+
+    Frame ``i`` is at ``i / fps`` seconds; the loop takes ``frame_count / fps`` seconds.
+    """
+
+    frame_count: int
+    fps: float
+    bursts: RotationBursts = RotationBursts()
+
+    @property
+    def duration_s(self) -> float:
+        return self.frame_count / self.fps
+
+    def poses(self, frame_positions: np.ndarray) -> np.ndarray:
+        """``world_from_camera`` (N, 4, 4) at fractional frame positions (N,) (seconds times fps)."""
+        frame_positions = np.asarray(frame_positions, np.float64)
+        poses = _loop_poses(frame_positions, self.frame_count)
+        if self.bursts.count == 0:
+            return poses
+        tilt = self.bursts.tilt_rad(frame_positions / self.fps, self.duration_s)
+        cos, sin = np.cos(tilt), np.sin(tilt)
+        camera_from_tilted = np.tile(np.eye(4), (len(tilt), 1, 1))
+        camera_from_tilted[:, 1, 1], camera_from_tilted[:, 1, 2] = cos, -sin
+        camera_from_tilted[:, 2, 1], camera_from_tilted[:, 2, 2] = sin, cos
+        return poses @ camera_from_tilted
 
 
 def render(
@@ -216,6 +299,49 @@ def _sample_texture(texture: np.ndarray, x_px: np.ndarray, y_px: np.ndarray) -> 
     return samples.reshape(-1, 3)[:count]
 
 
+MIN_SHARP_BEFORE_BURST_S = 0.2
+"""Seconds of the plain loop before, between and after rotation bursts (the tracker starts on sharp frames)."""
+
+BLUR_STEP_PX = 0.5
+"""Largest image motion, pixels, between consecutive sub-frames of a blurred frame: finer looks like a smooth smear."""
+
+MAX_BLUR_SUBFRAMES = 128
+
+
+def subframe_positions(frame_index: int, fps: float, exposure_s: float, count: int) -> np.ndarray:
+    """Fractional frame positions (count,) of the sub-frames of frame ``frame_index``: the midpoints of ``count``
+    equal slices of the exposure ``[t - exposure_s / 2, t + exposure_s / 2]`` around its timestamp ``t``."""
+    offsets_s = (np.arange(count) + 0.5) / count * exposure_s - exposure_s / 2.0
+    return frame_index + offsets_s * fps
+
+
+def blur_subframe_count(camera: Camera, depth_m: np.ndarray, world_from_camera: np.ndarray,
+                        world_from_start: np.ndarray, world_from_end: np.ndarray) -> int:
+    """Sub-frames enough that the scene seen at ``world_from_camera`` (z-depth (H, W) metres) moves at most
+    :data:`BLUR_STEP_PX` between consecutive ones, from pose ``world_from_start`` to ``world_from_end`` (4x4);
+    at least 2, at most :data:`MAX_BLUR_SUBFRAMES`. The exposure is short: its motion is taken as linear."""
+    rows, columns = np.mgrid[0 : camera.height : 4, 0 : camera.width : 4]
+    depth = depth_m[rows, columns]
+    pixels = np.stack([columns, rows], axis=-1)[depth > 0].astype(np.float64)
+    points_world = transform_points(world_from_camera, camera.backproject(pixels, depth[depth > 0].astype(np.float64)))
+    ends = []
+    for world_from_pose in (world_from_start, world_from_end):
+        points = transform_points(inverse(world_from_pose), points_world)
+        ends.append(camera.project(points, np.maximum(points[:, 2], 1e-3)))
+    motion_px = float(np.max(np.linalg.norm(ends[1] - ends[0], axis=1), initial=0.0))
+    return int(np.clip(np.ceil(motion_px / BLUR_STEP_PX), 2, MAX_BLUR_SUBFRAMES))
+
+
+def render_exposure(scene: SyntheticScene, camera: Camera, world_from_subframes: np.ndarray,
+                    supersampling: int = 1) -> np.ndarray:
+    """Colour (H, W, 3) float32 of an exposure: the mean of sharp renders at the sub-frame poses (K, 4, 4),
+    as a sensor sums the light arriving while the camera moves (motion blur along the true path)."""
+    total = np.zeros((camera.height, camera.width, 3), np.float64)
+    for pose in world_from_subframes:
+        total += render(scene, camera, pose, supersampling)[0]
+    return (total / len(world_from_subframes)).astype(np.float32)
+
+
 @dataclasses.dataclass(frozen=True)
 class SynthOptions:
     """Sensor effects of a synthetic sequence. Depth noise is Gaussian with sigma ``depth_noise_m * z^2``."""
@@ -226,7 +352,11 @@ class SynthOptions:
     fps: float = 30.0
     depth_noise_m: float = 0.0
     colour_noise: float = 0.0
-    motion_blur_samples: int = 1
+    # Motion blur: each colour frame integrates light over ``exposure_s`` seconds centred on its timestamp (see
+    # :func:`render_exposure`); ``blur_subframes`` fixes the number of sub-frame renders (None: from the motion).
+    exposure_s: float = 0.0
+    blur_subframes: int | None = None
+    bursts: RotationBursts = RotationBursts()
     # Rays per pixel along each side (odd); see :func:`render`. 1 keeps the tests' sequences fast to write.
     supersampling: int = 1
     seed: int = 0
@@ -235,6 +365,30 @@ class SynthOptions:
     # The ground truth is the depth camera's; camera.yaml gets the colour_* keys. 0 and 1: one registered camera.
     colour_baseline_m: float = 0.0
     colour_focal_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not 0.0 <= self.exposure_s <= 1.0 / self.fps:
+            problems.append(f"motion blur exposure {self.exposure_s} s: must be in [0, 1/fps = {1.0 / self.fps:.4g}] s")
+        if self.blur_subframes is not None and self.blur_subframes < 1:
+            problems.append(f"blur sub-frames {self.blur_subframes}: must be at least 1")
+        bursts = self.bursts
+        if bursts.count < 0 or bursts.speed_deg_s <= 0 or bursts.duration_s <= 4 * BURST_RAMP_S:
+            problems.append(f"rotation bursts {bursts}: need count >= 0, speed > 0 and duration > {4 * BURST_RAMP_S} s")
+        elif bursts.count and bursts.windows_s(self.frame_count / self.fps)[0][0] < MIN_SHARP_BEFORE_BURST_S:
+            problems.append(f"{bursts.count} rotation bursts of {bursts.duration_s} s do not fit in {self.frame_count} "
+                            f"frames at {self.fps} fps with {MIN_SHARP_BEFORE_BURST_S} s of steady motion around each: "
+                            "use more frames or fewer or shorter bursts")
+        if problems:
+            raise ConfigError("synthetic sequence: " + "; ".join(problems))
+
+    @property
+    def path(self) -> CameraPath:
+        return CameraPath(self.frame_count, self.fps, self.bursts)
+
+    @property
+    def blurred(self) -> bool:
+        return self.exposure_s > 0.0
 
     @property
     def registered(self) -> bool:
@@ -256,15 +410,22 @@ class SynthOptions:
 def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions()) -> Trajectory:
     """Render a sequence into ``folder`` in the TUM layout; returns its ground-truth trajectory.
 
-    Depth stamps lag colour stamps by 5 ms, as real Kinect streams do, so association is exercised.
+    Depth stamps lag colour stamps by 5 ms, as real Kinect streams do, so association is exercised. Depth is
+    always sharp: the pose at the frame's timestamp, as a depth camera's short structured-light exposure is.
+    With motion blur or colour noise, ``gt_rgb/`` (same file names as ``rgb/``) holds every frame's sharp,
+    noise-free colour image at its ground-truth pose, for evaluation.
     """
     folder = Path(folder)
     (folder / "rgb").mkdir(parents=True, exist_ok=True)
     (folder / "depth").mkdir(parents=True, exist_ok=True)
+    write_sharp = options.blurred or options.colour_noise > 0
+    if write_sharp:
+        (folder / GT_RGB_FOLDER).mkdir(exist_ok=True)
     rng = np.random.default_rng(options.seed + 1)
     scene = make_room_scene(options.seed)
     camera = default_camera(options.width, options.height)
-    world_from_camera = loop_path(options.frame_count)
+    path = options.path
+    world_from_camera = path.poses(np.arange(options.frame_count))
     timestamps = np.arange(options.frame_count) / options.fps
     rgb_lines, depth_lines = ["# timestamp filename"], ["# timestamp filename"]
     colour_camera = options.colour_camera(camera)
@@ -273,12 +434,13 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
         colour, depth_m = render(scene, camera, pose, options.supersampling)
         if not options.registered:
             colour = render(scene, colour_camera, pose @ depth_from_colour, options.supersampling)[0]
-        if options.motion_blur_samples > 1:
-            previous = world_from_camera[index - 1]
-            blurred = [render(scene, colour_camera, interpolate_pose(previous, pose, f) @ depth_from_colour,
-                              options.supersampling)[0]
-                       for f in np.linspace(0.5, 1.0, options.motion_blur_samples)[:-1]]
-            colour = (colour + sum(blurred)) / options.motion_blur_samples
+        sharp = colour
+        if options.blurred:
+            exposure_frames = options.exposure_s * options.fps
+            count = options.blur_subframes or blur_subframe_count(
+                camera, depth_m, pose, *path.poses(index + np.array([-0.5, 0.5]) * exposure_frames))
+            subframes = path.poses(subframe_positions(index, options.fps, options.exposure_s, count))
+            colour = render_exposure(scene, colour_camera, subframes @ depth_from_colour, options.supersampling)
         if options.colour_noise > 0:
             colour = colour + rng.normal(0.0, options.colour_noise, colour.shape).astype(np.float32)
         if options.depth_noise_m > 0:
@@ -286,10 +448,11 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
         rgb_name = f"rgb/{timestamps[index]:.6f}.png"
         depth_stamp = timestamps[index] + 0.005
         depth_name = f"depth/{depth_stamp:.6f}.png"
-        rgb8 = (np.clip(colour, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
         depth16 = np.clip(depth_m * SYNTHETIC_DEPTH_SCALE + 0.5, 0, 65535).astype(np.uint16)
-        _write_png(folder / rgb_name, cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR))
+        _write_png(folder / rgb_name, cv2.cvtColor(to_rgb8(colour), cv2.COLOR_RGB2BGR))
         _write_png(folder / depth_name, depth16)
+        if write_sharp:
+            _write_png(folder / GT_RGB_FOLDER / Path(rgb_name).name, cv2.cvtColor(to_rgb8(sharp), cv2.COLOR_RGB2BGR))
         rgb_lines.append(f"{timestamps[index]:.6f} {rgb_name}")
         depth_lines.append(f"{depth_stamp:.6f} {depth_name}")
     trajectory = Trajectory(timestamps, world_from_camera)
@@ -303,6 +466,11 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
         camera_values["colour_from_depth"] = options.colour_from_depth().tolist()
     atomic_write_text(folder / "camera.yaml", yaml.safe_dump(camera_values, sort_keys=False))
     return trajectory
+
+
+def to_rgb8(colour: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 of a float colour image in [0, 1], rounded as the sequence's PNGs store it."""
+    return (np.clip(colour, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

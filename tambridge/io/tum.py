@@ -20,6 +20,8 @@ from tambridge.trajectory import Trajectory, read_tum_trajectory
 
 MAX_ASSOCIATION_DIFFERENCE_S = 0.02
 PLAUSIBLE_MEDIAN_DEPTH_M = (0.1, 10.0)
+GT_RGB_FOLDER = "gt_rgb"
+"""Optional folder of sharp ground-truth colour images, named as in ``rgb/`` (synthetic blurred sequences)."""
 
 
 @dataclasses.dataclass
