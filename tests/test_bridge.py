@@ -172,6 +172,9 @@ def test_sharpest_candidate_within_eq_3_bounds_is_chosen():
     # Without a sparse map (T = 0) every tracked candidate passes; a tie keeps the keyframe.
     assert sharpest_candidate(keyframe, window, 0, 0.75, 20).frame_index == 5
     assert sharpest_candidate(keyframe, [candidate(9, 50.0, 60)], 100, 0.75, 20).frame_index == 10
+    # A margin keeps the keyframe against a candidate only a little sharper.
+    assert sharpest_candidate(keyframe, [candidate(9, 55.0, 60)], 100, 0.75, 20, margin=1.2).frame_index == 10
+    assert sharpest_candidate(keyframe, [candidate(9, 65.0, 60)], 100, 0.75, 20, margin=1.2).frame_index == 9
 
 
 def test_a_blurred_outlier_is_too_blurred_and_a_typical_frame_is_not():

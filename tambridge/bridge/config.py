@@ -36,10 +36,12 @@ class BridgeConfig:
     sharpest_window: int = setting(6, "a selected keyframe is mapped through the sharpest tracked frame among it and "
                                       "this many frames before it that passes eq. 3 (0: the keyframe itself)",
                                    NON_NEGATIVE)
+    sharper_by: float = setting(1.2, "a frame of the window replaces the keyframe only when this many times as sharp",
+                                at_least(1.0))
     blur_reject_ratio: float = setting(0.35, "a view whose sharpness is below this share of the median over the recent "
                                              "tracked frames is not mapped (0: never skipped)", UNIT)
     sharpness_median_frames: int = setting(60, "tracked frames the recent median sharpness is taken over", at_least(1))
-    reprojection_floor_px: float = setting(0.0, "the refinement is skipped where the keyframe's matched points reproject "
+    reprojection_floor_px: float = setting(0.5, "the refinement is skipped where the keyframe's matched points reproject "
                                                 "within this mean error at the frontend pose (mapping-resolution px; "
                                                 "0: never skipped)", NON_NEGATIVE)
     sharpness_weighted_colour: bool = setting(True, "scale the colour term by the view's sharpness over the recent "

@@ -84,9 +84,10 @@ def select_view(event: KeyframeEvent, is_first: bool, enabled: bool, alpha: floa
 
 
 def sharpest_candidate(keyframe: Candidate, candidates: list[Candidate], previous_total: int, alpha: float,
-                       beta: int) -> Candidate:
-    """The sharpest of ``keyframe`` (which passed eq. 3) and the ``candidates`` that pass eq. 3's bounds against the
-    previous keyframe's ``previous_total`` (``T``); the keyframe on a tie.
+                       beta: int, margin: float = 1.0) -> Candidate:
+    """The sharpest of the ``candidates`` that pass eq. 3's bounds against the previous keyframe's
+    ``previous_total`` (``T``) where it is at least ``margin`` times as sharp as ``keyframe`` (which passed eq. 3),
+    else the keyframe: among frames about as sharp, the keyframe sees the most that is new.
 
     A candidate's ``M`` is the number of map points it tracked: it is not a keyframe, so the frontend does not
     count the points it shares with the previous keyframe, and the points it tracked bound them from above (the
@@ -95,7 +96,8 @@ def sharpest_candidate(keyframe: Candidate, candidates: list[Candidate], previou
     eligible = [candidate for candidate in candidates
                 if covisibility_selection(candidate.tracked_points, previous_total, alpha, beta)
                 in (Selection.SELECTED, Selection.NO_SPARSE_MAP)]
-    return max([keyframe] + eligible, key=lambda candidate: candidate.sharpness)
+    sharpest = max(eligible, key=lambda candidate: candidate.sharpness, default=keyframe)
+    return sharpest if sharpest.sharpness > margin * keyframe.sharpness else keyframe
 
 
 def too_blurred(sharpness: float, recent_sharpness: list[float], ratio: float, min_recent: int) -> bool:

@@ -177,7 +177,8 @@ class MappingStage:
         latest_view = max((view.frame_index for view in self.views), default=-1)
         window = [candidate for candidate in earlier[len(earlier) - bridge.sharpest_window:]
                   if candidate.frame_index > latest_view] if bridge.sharpest_window else []
-        chosen = sharpest_candidate(keyframe, window, event.previous_total, bridge.alpha, bridge.beta)
+        chosen = sharpest_candidate(keyframe, window, event.previous_total, bridge.alpha, bridge.beta,
+                                    bridge.sharper_by)
         recent = [candidate.sharpness for candidate in earlier]
         if too_blurred(chosen.sharpness, recent, bridge.blur_reject_ratio, bridge.sharpest_window + 1):
             return chosen, Selection.TOO_BLURRED
@@ -206,10 +207,15 @@ class MappingStage:
             return
         replaced = chosen.frame_index != event.frame_index
         self.selections[SHARPER_FRAME] += replaced
-        # A replacing frame is read again (once per view): the window keeps no images.
-        images = self.images(chosen.frame_index, None if replaced else frame)
+        if replaced:
+            # Read again (once per view, the bridge's cost): the window keeps no images.
+            with self.run_log.stage("bridge"):
+                images = self.images(chosen.frame_index)
+        else:
+            images = self.images(event.frame_index, frame)
         # The frame's pose relative to its keyframe as tracked (the keyframe pose as inserted, before local BA).
-        keyframe_from_frame = inverse(np.asarray(event.world_from_camera, np.float64)) @ chosen.world_from_camera
+        keyframe_from_frame = (inverse(np.asarray(event.world_from_camera, np.float64)) @ chosen.world_from_camera
+                               if replaced else np.eye(4))
         frame_pose = self.keyframe_poses[event.keyframe_id] @ keyframe_from_frame
         exposure = self.new_exposure()
         refinement = None
@@ -230,7 +236,7 @@ class MappingStage:
                                                 keypoints, bridge, backend=self.mapper_config.backend,
                                                 colour_weight=self.colour_weight(chosen))
                 keyframe_from_view = inverse(self.keyframe_poses[event.keyframe_id]) @ refinement.world_from_camera
-                logger.debug("frame %d: reprojection %.2f px, joint loss %.4f -> %.4f, pose moved %.2f mm%s",
+                logger.info("frame %d: reprojection %.2f px, joint loss %.4f -> %.4f, pose moved %.2f mm%s",
                              chosen.frame_index, refinement.reprojection_px, refinement.loss_initial, refinement.loss_final,
                              1e3 * np.linalg.norm(refinement.world_from_camera[:3, 3] - frame_pose[:3, 3]),
                              " (skipped)" if refinement.skipped else "")
