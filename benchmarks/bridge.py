@@ -21,6 +21,7 @@ import argparse
 import datetime
 import json
 import platform
+import subprocess
 import sys
 from pathlib import Path
 
@@ -178,7 +179,9 @@ def main() -> None:
             print(f"{key}: bridge {name}", flush=True)
             cases[name] = run_case(f"{key}_{name}", folder, settings_of(sequence_settings) + case_settings + args.set,
                                    max_frames, camera, targets)
-        results["sequences"][key] = {"folder": str(folder), "max_frames": max_frames, "scored_against": "gt_rgb" if has_gt else "inputs",
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        results["sequences"][key] = {"folder": str(folder), "max_frames": max_frames, "commit": commit,
+                                     "scored_against": "gt_rgb" if has_gt else "inputs",
                                      "cases": cases, "summary": summarise(cases, sharpness_by_frame)}
     results["date"] = datetime.date.today().isoformat()
     results["machine"] = platform.platform()

@@ -165,7 +165,8 @@ class MappingStage:
     def view_frame(self, event: KeyframeEvent, selection: Selection, frame: Frame) -> tuple[Candidate, Selection]:
         """The frame to map for a keyframe eq. 3 selected, and its final selection: the sharpest candidate of its
         window within eq. 3 (:func:`sharpest_candidate`), or ``TOO_BLURRED`` where that is far below the recent
-        median (the first keyframe and an uncovered one are mapped as they are)."""
+        median and the map already explains the keyframe (:meth:`uncovered`); the first keyframe and an uncovered
+        one eq. 3 rejected are mapped as they are."""
         bridge = self.bridge_config
         earlier = [candidate for candidate in self._recent if candidate.frame_index < event.frame_index]
         own = [candidate.sharpness for candidate in self._recent if candidate.frame_index == event.frame_index]
@@ -180,7 +181,9 @@ class MappingStage:
         chosen = sharpest_candidate(keyframe, window, event.previous_total, bridge.alpha, bridge.beta,
                                     bridge.sharper_by)
         recent = [candidate.sharpness for candidate in earlier]
-        if too_blurred(chosen.sharpness, recent, bridge.blur_reject_ratio, bridge.sharpest_window + 1):
+        # A blurred view is still better than none where the map lacks what the keyframe sees.
+        if too_blurred(chosen.sharpness, recent, bridge.blur_reject_ratio, bridge.sharpest_window + 1) and \
+                not self.uncovered(frame, self.rendering_pose(event.frame_index, event.world_from_camera)):
             return chosen, Selection.TOO_BLURRED
         return chosen, selection
 
