@@ -209,8 +209,8 @@ class MappingStage:
         if not selection.selected:
             return
         replaced = chosen.frame_index != event.frame_index
-        self.selections[SHARPER_FRAME] += replaced
         if replaced:
+            self.selections[SHARPER_FRAME] += 1
             # Read again (once per view, the bridge's cost): the window keeps no images.
             with self.run_log.stage("bridge"):
                 images = self.images(chosen.frame_index)
