@@ -9,13 +9,15 @@ from tambridge.settings import FRACTION, NON_NEGATIVE, POSITIVE, UNIT, at_least,
 
 @dataclasses.dataclass
 class BridgeConfig:
-    """Fusion Bridge (paper Sec. 3.3, appendix): view selection and joint pose refinement.
+    """Fusion Bridge (paper Sec. 3.3, appendix): view selection (eq. 3, and the sharpest frame near each keyframe)
+    and joint pose refinement.
 
     ``enabled: false`` is the paper's ablation: frontend poses go straight to the mapper and every keyframe is a
     mapping view.
     """
 
-    enabled: bool = setting(True, "select mapping views by eq. 3 and refine their poses against the Gaussian map")
+    enabled: bool = setting(True, "select mapping views by eq. 3 and sharpness (and refine their poses against the "
+                                  "Gaussian map with refine_poses)")
     alpha: float = setting(0.75, "eq. 3: a keyframe sharing this share or more of the previous one's matched points "
                                  "adds nothing new", FRACTION)
     beta: int = setting(20, "eq. 3: a keyframe must share at least this many map points with the previous one",
