@@ -160,7 +160,9 @@ def main() -> None:
     parser.add_argument("--sequences", default=",".join(SEQUENCES), help="comma-separated: " + ", ".join(SEQUENCES))
     parser.add_argument("--max-frames", type=int, default=None, help="instead of each sequence's own count")
     parser.add_argument("--refine", action="store_true", help="add a case with bridge.refine_poses=true")
-    parser.add_argument("--set", action="append", default=[], help="a config override for every case")
+    parser.add_argument("--set", action="append", default=[], help="a config override for every case but off")
+    parser.add_argument("--reuse-off", action="store_true", help="take the off case from bridge.json instead of running it")
+    parser.add_argument("--name", default="", help="store the sequence's results under KEY_NAME (a variant)")
     args = parser.parse_args()
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"sequences": {}}
     cases_to_run = dict(CASES) | ({"refine": ["bridge.refine_poses=true"]} if args.refine else {})
@@ -176,11 +178,14 @@ def main() -> None:
         targets, sharpness_by_frame, has_gt = targets_of(folder, config)
         cases = {}
         for name, case_settings in cases_to_run.items():
+            if name == "off" and args.reuse_off:
+                cases[name] = results["sequences"][key]["cases"]["off"]
+                continue
             print(f"{key}: bridge {name}", flush=True)
-            cases[name] = run_case(f"{key}_{name}", folder, settings_of(sequence_settings) + case_settings + args.set,
-                                   max_frames, camera, targets)
+            cases[name] = run_case(f"{key}_{name}", folder, settings_of(sequence_settings) + case_settings
+                                   + (args.set if name != "off" else []), max_frames, camera, targets)
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-        results["sequences"][key] = {"folder": str(folder), "max_frames": max_frames, "commit": commit,
+        results["sequences"][key + (f"_{args.name}" if args.name else "")] = {"folder": str(folder), "max_frames": max_frames, "commit": commit,
                                      "scored_against": "gt_rgb" if has_gt else "inputs",
                                      "cases": cases, "summary": summarise(cases, sharpness_by_frame)}
     results["date"] = datetime.date.today().isoformat()
