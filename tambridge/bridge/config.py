@@ -46,7 +46,7 @@ class BridgeConfig:
     reprojection_floor_px: float = setting(0.5, "the refinement is skipped where the keyframe's matched points reproject "
                                                 "within this mean error at the frontend pose (mapping-resolution px; "
                                                 "0: never skipped)", NON_NEGATIVE)
-    sharpness_weighted_colour: bool = setting(True, "scale the colour term by the view's sharpness over the recent "
+    sharpness_weighted_colour: bool = setting(False, "scale the colour term by the view's sharpness over the recent "
                                                     "median (at most 1): a blurred view pulls its pose less by colour")
     min_gated_fraction: float = setting(0.05, "below this share of gated pixels (and with no matched points) the "
                                               "frontend pose is kept", UNIT)
