@@ -38,7 +38,7 @@ class BridgeConfig:
     sharpest_window: int = setting(6, "a selected keyframe is mapped through the sharpest tracked frame among it and "
                                       "this many frames before it that passes eq. 3 (0: the keyframe itself)",
                                    NON_NEGATIVE)
-    sharper_by: float = setting(1.2, "a frame of the window replaces the keyframe only when this many times as sharp",
+    sharper_by: float = setting(1.5, "a frame of the window replaces the keyframe only when this many times as sharp",
                                 at_least(1.0))
     blur_reject_ratio: float = setting(0.35, "a view whose sharpness is below this share of the median over the recent "
                                              "tracked frames is not mapped (0: never skipped)", UNIT)
