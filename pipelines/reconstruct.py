@@ -244,6 +244,8 @@ def track_frames(
                 frame, features = next(frames)
             with run_log.stage("tracking"):
                 result = frontend.track(frame, features)
+            if mapping is not None:
+                mapping.on_tracked(result, frame, prefetcher.sharpness.pop(frame.index, None))
             if mapping is not None and result.keyframe is not None:
                 mapping.on_keyframe(result.keyframe, frame, frontend.keyframe_poses())
             counters.keyframes += result.is_keyframe

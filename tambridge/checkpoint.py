@@ -173,7 +173,7 @@ def state_types() -> StateTypes:
 
     from tambridge.bridge.refinement import RefinementResult
     from tambridge.bridge.view import MappingView
-    from tambridge.bridge.view_selection import Selection
+    from tambridge.bridge.view_selection import Candidate, Selection
     from tambridge.frontend.open3d.frontend import _Keyframe as Open3dKeyframe
     from tambridge.frontend.orb.dense_depth import DenseReference
     from tambridge.frontend.orb.features import FrameFeatures
@@ -202,7 +202,7 @@ def state_types() -> StateTypes:
 
     return StateTypes(
         records=(Keyframe, FrameFeatures, MapPoints, SlamMap, KeyframeDatabase, LoopConsistency, _FrameRecord, DenseReference,
-                 Open3dKeyframe, PoseEdge, MappingView, RefinementResult, ViewImages),
+                 Open3dKeyframe, PoseEdge, MappingView, RefinementResult, ViewImages, Candidate),
         enums=(Selection,),
         codecs=(
             StateCodec(ViewExposure, ViewExposure.state_dict, ViewExposure.from_state_dict),

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from tambridge.bridge.refinement import pixel_gates, refine_render_pose, reprojection_error_px
-from tambridge.bridge.view_selection import Selection, covisibility_selection, select_view
+from tambridge.bridge.view_selection import (SHARPER_FRAME, Candidate, Selection, covisibility_selection, select_view,
+                                             sharpest_candidate, too_blurred)
 from tambridge.bridge.config import BridgeConfig
 from tambridge.gaussians.config import MapperConfig
 from tambridge.frontend.contract import KeyframeEvent
@@ -15,6 +16,12 @@ from tambridge.gaussians.mapper import GaussianMap, ViewImages
 from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.geometry import exp_se3, inverse, log_se3, transform_points
 from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render
+from tambridge.io.tum import Frame, open_sequence
+from tambridge.frontend.contract import TrackResult
+from tambridge.images import sharpness
+from tambridge.mapping.stage import MappingStage
+from tambridge.evaluation.mapping import score_views
+from tambridge.runlog import RunLog
 
 
 @pytest.fixture(autouse=True)
@@ -148,3 +155,132 @@ def test_refinement_is_skipped_without_map_or_points(synthetic_views):
                          np.zeros((0, 3)), np.zeros((0, 2)), BridgeConfig())
     assert result.skipped
     np.testing.assert_array_equal(result.world_from_camera, poses[1])
+
+
+def candidate(index, sharpness_score, tracked_points):
+    return Candidate(index, np.eye(4), sharpness_score, tracked_points)
+
+
+def test_sharpest_candidate_within_eq_3_bounds_is_chosen():
+    keyframe = candidate(10, 50.0, 60)  # T = 100 below: M = 60 passes eq. 3
+    window = [candidate(5, 400.0, 90),  # the sharpest, but 90 >= 0.75 T: too similar to the previous keyframe
+              candidate(6, 200.0, 70),  # sharpest within the bounds
+              candidate(7, 150.0, 10),  # under beta
+              candidate(8, 120.0, 50)]
+    assert sharpest_candidate(keyframe, window, 100, 0.75, 20).frame_index == 6
+    assert sharpest_candidate(keyframe, window[:1] + window[2:3], 100, 0.75, 20).frame_index == 10
+    # Without a sparse map (T = 0) every tracked candidate passes; a tie keeps the keyframe.
+    assert sharpest_candidate(keyframe, window, 0, 0.75, 20).frame_index == 5
+    assert sharpest_candidate(keyframe, [candidate(9, 50.0, 60)], 100, 0.75, 20).frame_index == 10
+    # A margin keeps the keyframe against a candidate only a little sharper.
+    assert sharpest_candidate(keyframe, [candidate(9, 55.0, 60)], 100, 0.75, 20, margin=1.2).frame_index == 10
+    assert sharpest_candidate(keyframe, [candidate(9, 65.0, 60)], 100, 0.75, 20, margin=1.2).frame_index == 9
+
+
+def test_a_blurred_outlier_is_too_blurred_and_a_typical_frame_is_not():
+    recent = [100.0, 120.0, 90.0, 110.0, 105.0]
+    assert too_blurred(20.0, recent, 0.35, 3)
+    assert not too_blurred(80.0, recent, 0.35, 3)
+    assert not too_blurred(20.0, recent, 0.0, 3)  # ratio 0: never
+    assert not too_blurred(20.0, recent[:2], 0.35, 3)  # too few frames for a median
+
+
+def test_refinement_is_skipped_at_the_reprojection_noise_floor(synthetic_views):
+    """Points that reproject within the floor at the start pose keep it without a render; above it they do not."""
+    camera, poses, views = synthetic_views
+    rng = np.random.default_rng(2)
+    points_camera = np.column_stack([rng.uniform(-1, 1, 40), rng.uniform(-0.7, 0.7, 40), rng.uniform(1.5, 3.0, 40)])
+    keypoints = points_camera[:, :2] / points_camera[:, 2:] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    keypoints = keypoints + rng.normal(0.0, 0.3, keypoints.shape)  # keypoint noise of 0.3 px
+    points_world = transform_points(poses[1], points_camera)
+    empty_map = GaussianMap(MapperConfig())
+    floor = dataclasses.replace(BridgeConfig(), reprojection_floor_px=1.0, iterations=5)
+    kept = refine_render_pose(empty_map.gaussians(), camera, poses[1], views[1].rgb, views[1].depth_m, points_world,
+                              keypoints, floor)
+    assert kept.skipped and 0.1 < kept.reprojection_px < 1.0
+    np.testing.assert_array_equal(kept.world_from_camera, poses[1])
+    start = poses[1] @ random_perturbation(rng, 0.02, 1.0)  # several pixels off: refined
+    moved = refine_render_pose(empty_map.gaussians(), camera, start, views[1].rgb, views[1].depth_m, points_world,
+                               keypoints, floor)
+    assert not moved.skipped and moved.reprojection_px > 1.0 and moved.loss_final < moved.loss_initial
+
+
+def test_colour_term_scales_with_the_colour_weight(synthetic_map):
+    """The joint loss at the start pose is linear in the colour weight (0 drops the colour term)."""
+    gaussian_map, camera, poses, views = synthetic_map
+    config = dataclasses.replace(BridgeConfig(), iterations=1)
+    start = poses[1] @ random_perturbation(np.random.default_rng(3), 0.01, 0.5)
+    losses = [refine_render_pose(gaussian_map.gaussians(), camera, start, views[1].rgb, views[1].depth_m, np.zeros((0, 3)),
+                                 np.zeros((0, 2)), config, colour_weight=weight).loss_initial for weight in (0.0, 0.5, 1.0)]
+    assert losses[2] - losses[0] > 1e-3
+    assert np.isclose(losses[2] - losses[0], 2 * (losses[1] - losses[0]), rtol=1e-4)
+
+
+def blurred(rgb, sigma=3.0):
+    import cv2
+    return cv2.GaussianBlur(rgb, (0, 0), sigma)
+
+
+def map_with_blurred_keyframes(sequence, tmp_path, bridge, keyframes, blurred_frames):
+    """Map ``keyframes`` (frame indices) of ``sequence`` at ground-truth poses, every frame tracked with the blurred
+    colour where its index is in ``blurred_frames`` (only the frames given to the stage are blurred: the files, read
+    back for a replacing frame and for scoring, stay sharp)."""
+    poses = sequence.ground_truth.world_from_camera
+    mapper = MapperConfig(resolution_scale=0.5, iterations=10, coverage_unexplained=0.0)
+    run_log = RunLog(tmp_path / "run.log")
+    try:
+        stage = MappingStage(sequence, mapper, bridge, run_log, seed=0)
+        keyframe_poses = {}
+        for index in range(keyframes[-1] + 1):
+            frame = sequence[index]
+            if index in blurred_frames:
+                frame = Frame(frame.index, frame.timestamp_s, blurred(frame.rgb), frame.depth_m)
+            stage.on_tracked(TrackResult(index, 0.0, poses[index], True, index in keyframes, 60), frame)
+            if index in keyframes:
+                keyframe_id = len(keyframe_poses)
+                keyframe_poses[keyframe_id] = poses[index]
+                event = KeyframeEvent(keyframe_id, index, 0.0, poses[index], np.zeros((0, 3)), np.zeros((0, 2)),
+                                      np.zeros(0, np.int64), shared_with_previous=60, previous_total=100)
+                stage.on_keyframe(event, frame, dict(keyframe_poses))
+        return stage
+    finally:
+        run_log.close()
+
+
+def test_blur_aware_selection_maps_the_sharp_frame_before_a_blurred_keyframe(synthetic_sequence_dir, tmp_path):
+    """Keyframe at frame 6 blurred, frame 5 sharp: the view is frame 5 at its tracked pose, and frames rendered
+    after it follow the frontend's relative motion."""
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=8)
+    poses = sequence.ground_truth.world_from_camera
+    stage = map_with_blurred_keyframes(sequence, tmp_path, BridgeConfig(sharpest_window=2), [0, 6], {4, 6})
+    assert [view.frame_index for view in stage.views] == [0, 5]
+    assert stage.selections[SHARPER_FRAME] == 1 and stage.selections[Selection.SELECTED.name] == 1
+    np.testing.assert_allclose(stage.views[1].keyframe_from_view, inverse(poses[6]) @ poses[5], atol=1e-12)
+    np.testing.assert_allclose(stage.view_pose(stage.views[1]), poses[5], atol=1e-12)
+    np.testing.assert_allclose(stage.rendering_pose(7, poses[7]), poses[7], atol=1e-12)
+
+
+def test_a_view_far_blurrier_than_the_recent_frames_is_skipped(synthetic_sequence_dir, tmp_path):
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=8)
+    stage = map_with_blurred_keyframes(sequence, tmp_path, BridgeConfig(sharpest_window=0), [0, 6], {6})
+    assert [view.frame_index for view in stage.views] == [0]
+    assert stage.selections[Selection.TOO_BLURRED.name] == 1
+    assert sharpness(blurred(sequence[6].rgb)) < 0.35 * sharpness(sequence[6].rgb)
+
+
+@pytest.mark.slow
+def test_blur_aware_selection_beats_keyframe_only_selection_against_the_sharp_frames(synthetic_sequence_dir, tmp_path):
+    """Every third frame a keyframe and blurred (the frame before it sharp): scored against the sharp files, the map
+    of the sharper frames renders the frames between better than the map of the blurred keyframes."""
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=16)
+    poses = sequence.ground_truth.world_from_camera
+    keyframes = [0, 3, 6, 9, 12, 15]
+    blurred_frames = set(keyframes[1:])
+    psnr_db = {}
+    for name, bridge in {"keyframes": BridgeConfig(sharpest_window=0, blur_reject_ratio=0.0),
+                         "sharpest": BridgeConfig()}.items():
+        stage = map_with_blurred_keyframes(sequence, tmp_path, bridge, keyframes, blurred_frames)
+        stage.finish({i: poses[k] for i, k in enumerate(keyframes)})
+        psnr_db[name] = float(np.mean(score_views(stage, stage.rendering_poses(sequence.ground_truth), [1, 4, 7, 10, 13]).psnr_db))
+    # The bound lies 1 dB inside this run's gain (mapping is deterministic).
+    assert psnr_db["sharpest"] > psnr_db["keyframes"] + 1.8, psnr_db

@@ -157,7 +157,7 @@ def test_run_all_gpu_without_a_gpu_stops_at_once(tmp_path):
 
 
 CUDA_RUN = ("frontend.orb.mapping_thread=false", "mesh.enabled=false", "input.max_frames=15", "mapper.iterations=10",
-            "bridge.iterations=5", "mapper.final_iterations_per_view=1")
+            "bridge.refine_poses=true", "bridge.iterations=5", "mapper.final_iterations_per_view=1")
 
 
 @pytest.mark.skipif(not gsplat_available(), reason="needs a CUDA GPU and gsplat")

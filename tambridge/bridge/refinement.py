@@ -84,8 +84,10 @@ class RefinementResult:
     """Outcome of :func:`refine_render_pose`: the refined 4x4 ``world_from_camera`` and how the loss went.
 
     ``loss_initial``/``loss_final``: joint loss at the frontend pose and at the returned pose (the lowest seen);
-    ``gated_fraction``: share of the pixels that passed the gates at the frontend pose; ``skipped``: True when too
-    few pixels passed and no point was matched, and the frontend pose was kept as it was.
+    ``gated_fraction``: share of the pixels that passed the gates at the frontend pose; ``skipped``: True when the
+    frontend pose was kept as it was (too few pixels passed and no point was matched, or the matched points already
+    reprojected within the noise floor); ``reprojection_px``: their mean reprojection error at the frontend pose
+    (NaN without matched points).
     """
 
     world_from_camera: np.ndarray
@@ -93,6 +95,7 @@ class RefinementResult:
     loss_final: float
     gated_fraction: float
     skipped: bool
+    reprojection_px: float = float("nan")
 
 
 def refine_render_pose(
@@ -105,6 +108,7 @@ def refine_render_pose(
     keypoints_px: np.ndarray,
     config: BridgeConfig,
     backend: str = "auto",
+    colour_weight: float = 1.0,
 ) -> RefinementResult:
     """Refine ``world_from_camera`` (4, 4) of one view against the fixed ``gaussians`` with L-BFGS on the twist.
 
@@ -112,6 +116,9 @@ def refine_render_pose(
     points_world_m (M, 3) / keypoints_px (M, 2) its matched map points and keypoints in ``camera``'s pixels (M may
     be 0). ``config.iterations`` bounds the loss evaluations (one render and its backward pass each). Returns the
     pose of the lowest joint loss seen, so a refinement never makes the loss worse than the frontend's pose.
+    ``colour_weight`` (in [0, 1]) scales ``w2``: a blurred view's colours say less about its pose. Where the matched
+    points already reproject within ``config.reprojection_floor_px`` at the frontend pose, the frontend pose is kept
+    without a render (the tracking is at its noise floor: the map cannot place the view better).
 
     L-BFGS with a strong-Wolfe line search rather than Adam: Adam's steps stay near its learning rate however small
     the gradient, so in 10 steps it circles the optimum.
@@ -125,6 +132,10 @@ def refine_render_pose(
     twist = torch.zeros(6, dtype=torch.float64, device=device, requires_grad=True)
     points = torch.from_numpy(np.asarray(points_world_m, dtype=np.float64).reshape(-1, 3)).to(device)
     keypoints = torch.from_numpy(np.asarray(keypoints_px, dtype=np.float64).reshape(-1, 2)).to(device)
+    reprojection_px = float(reprojection_error_px(camera, start, None, points, keypoints)) if len(points) else float("nan")
+    if reprojection_px <= config.reprojection_floor_px:
+        return RefinementResult(np.asarray(world_from_camera, np.float64).copy(), float("nan"), float("nan"),
+                                float("nan"), skipped=True, reprojection_px=reprojection_px)
     with torch.no_grad():
         rendered = render(gaussians, camera, start, torch.zeros(6, dtype=torch.float64, device=device), backend=backend)
         # The gates are drawn once, at the frontend pose: gates redrawn at every step would let the pose lower
@@ -133,7 +144,7 @@ def refine_render_pose(
     gated_fraction = float(gates.sum()) / observed_depth_m.numel()
     if gated_fraction < config.min_gated_fraction and len(points) == 0:
         return RefinementResult(np.asarray(world_from_camera, np.float64).copy(), float("nan"), float("nan"),
-                                gated_fraction, skipped=True)
+                                gated_fraction, skipped=True, reprojection_px=reprojection_px)
     observed_rgb = observed_rgb.to(rendered.rgb.dtype)
     observed_depth_m = observed_depth_m.to(rendered.depth_m.dtype)
     losses: list[tuple[float, np.ndarray]] = []  # (loss, pose delta) of every evaluation
@@ -143,7 +154,7 @@ def refine_render_pose(
         pose_delta = twist * twist_scale
         rendered = render(gaussians, camera, start, pose_delta, backend=backend)
         loss = (
-            config.w_colour * masked_l1(rendered.rgb, observed_rgb, gates)
+            colour_weight * config.w_colour * masked_l1(rendered.rgb, observed_rgb, gates)
             + config.w_depth * masked_l1(surface_depth_m(rendered.depth_m, rendered.silhouette), observed_depth_m, gates)
         ).to(torch.float64)
         if len(points):
@@ -159,4 +170,4 @@ def refine_render_pose(
     loss_initial = losses[0][0]
     best_loss, best_delta = min(losses, key=lambda pair: pair[0])
     refined = np.asarray(world_from_camera, np.float64) @ exp_se3(best_delta)
-    return RefinementResult(refined, loss_initial, best_loss, gated_fraction, skipped=False)
+    return RefinementResult(refined, loss_initial, best_loss, gated_fraction, skipped=False, reprojection_px=reprojection_px)

@@ -13,9 +13,12 @@ from tambridge.gaussians.mapper import ViewExposure
 
 @dataclasses.dataclass
 class MappingView:
-    """A keyframe taken as a mapping view. ``keyframe_from_view`` (4x4) is the bridge's pose correction;
-    ``exposure`` its colour transform (None: the mapper does not compensate exposure); ``unexplained`` the share of
-    its depth pixels the map left unexplained once it was mapped (:meth:`GaussianMap.unexplained_fraction`)."""
+    """A keyframe taken as a mapping view, mapped through frame ``frame_index`` (the keyframe's own frame, or a
+    sharper tracked frame before it). ``keyframe_from_view`` (4x4) places the view at its keyframe: the frame's
+    tracked offset ``keyframe_from_frame`` (identity for the keyframe's own frame) times the bridge's pose
+    correction; ``exposure`` its colour transform (None: the mapper does not compensate exposure); ``unexplained``
+    the share of its depth pixels the map left unexplained once it was mapped
+    (:meth:`GaussianMap.unexplained_fraction`); ``sharpness`` the frame's :func:`tambridge.images.sharpness`."""
 
     keyframe_id: int
     frame_index: int
@@ -24,3 +27,5 @@ class MappingView:
     refinement: RefinementResult | None
     exposure: ViewExposure | None = None
     unexplained: float = 0.0
+    keyframe_from_frame: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+    sharpness: float = float("nan")

@@ -4,7 +4,8 @@ Decoding the images of a 640x480 frame (and resampling unregistered colour) and 
 about as long as tracking it, and run mostly in cv2 and numba, which release the GIL: reading two frames ahead in
 one worker thread and preparing one frame ahead in another, they overlap tracking where a core is free. Frames come
 out in order and each one exactly as ``sequence[index]`` gives it, so results do not change; an error reading or
-preparing a frame is raised when the caller reaches that frame.
+preparing a frame is raised when the caller reaches that frame. The reader also scores each frame's sharpness
+(:func:`tambridge.images.sharpness`, on a thumbnail) for the Fusion Bridge's view selection.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import concurrent.futures
 from typing import Callable, Generic, Iterator, TypeVar
 
+from tambridge.images import sharpness
 from tambridge.io.tum import Frame, RgbdSequence
 
 Prepared = TypeVar("Prepared")
@@ -25,7 +27,8 @@ class FramePrefetcher(Generic[Prepared]):
     Use it as a context manager: leaving it (also on an error) cancels the read-ahead and waits for the workers,
     so nothing runs in the background afterwards. ``prepare`` runs in the preparer thread, one frame at a time, in
     order; it must not touch state the caller changes meanwhile (a frontend's ``extract``). ``read_ahead=False``
-    reads and prepares each frame in the caller's thread when it is asked for (no worker).
+    reads and prepares each frame in the caller's thread when it is asked for (no worker). ``sharpness[i]`` holds
+    frame i's :func:`tambridge.images.sharpness` once the iterator has yielded it.
     """
 
     def __init__(self, sequence: RgbdSequence, start: int = 0, prepare: Callable[[Frame], Prepared] | None = None,
@@ -35,6 +38,13 @@ class FramePrefetcher(Generic[Prepared]):
         self.prepare = prepare
         self._reader = _worker("read") if read_ahead else None
         self._preparer = _worker("prepare") if read_ahead and prepare is not None else None
+        self.sharpness: dict[int, float] = {}
+
+    def _read(self, index: int) -> Frame:
+        """The reader's task: frame ``index`` as the sequence gives it, its sharpness noted on the way."""
+        frame = self.sequence[index]
+        self.sharpness[index] = sharpness(frame.rgb)
+        return frame
 
     def _prepared(self, frame: Frame) -> tuple[Frame, Prepared | None]:
         return frame, None if self.prepare is None else self.prepare(frame)
@@ -51,15 +61,15 @@ class FramePrefetcher(Generic[Prepared]):
         indices = range(self.start, len(self.sequence))
         reader = self._reader
         if reader is None:
-            yield from (self._prepared(self.sequence[index]) for index in indices)
+            yield from (self._prepared(self._read(index)) for index in indices)
             return
-        reads = {index: reader.submit(self.sequence.__getitem__, index) for index in indices[:2]}
+        reads = {index: reader.submit(self._read, index) for index in indices[:2]}
         pending = self._prepare_later(reads.pop(indices[0])) if indices else None
         for index in indices:
             current = pending
             # Queued before the caller gets frame i: i+2 is read and i+1 prepared while the caller tracks i.
             if index + 2 < len(self.sequence):
-                reads[index + 2] = reader.submit(self.sequence.__getitem__, index + 2)
+                reads[index + 2] = reader.submit(self._read, index + 2)
             if index + 1 < len(self.sequence):
                 pending = self._prepare_later(reads.pop(index + 1))
             yield self._prepared(current.result()) if self._preparer is None else current.result()

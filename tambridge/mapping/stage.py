@@ -10,10 +10,11 @@ pass over all views, then a sharpening pass at the camera's resolution. Frames a
 the window's images at the mapping resolution and anything else (the sharpening pass's frames too) is read again
 from the sequence.
 
-Rendering poses. A mapping view's pose is its keyframe's pose times the bridge's correction
-``keyframe_from_view`` (identity with the bridge off), so frontend corrections and the bridge compose. Any other
-frame is rendered at ``view @ inverse(keyframe) @ frame`` with the frontend's poses of the frame and of the latest
-view keyframe at or before it: the frontend's relative motion, anchored at the refined view.
+Rendering poses. A mapping view's pose is its keyframe's pose times ``keyframe_from_view`` (the tracked offset of
+the frame it was mapped through, times the bridge's correction; identity with the bridge off), so frontend
+corrections and the bridge compose. Any other frame is rendered at ``view @ inverse(view frame) @ frame`` with the
+frontend's poses of the frame and of the latest view's frame at or before it (its keyframe's pose times the
+tracked offset): the frontend's relative motion, anchored at the refined view.
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ import torch
 
 from tambridge.bridge.refinement import refine_render_pose
 from tambridge.bridge.view import MappingView
-from tambridge.bridge.view_selection import Selection, select_view
+from tambridge.bridge.view_selection import SHARPER_FRAME, Candidate, Selection, select_view, sharpest_candidate, too_blurred
+from tambridge.images import sharpness as frame_sharpness
 from tambridge.state import attribute_state, restore_attributes
 from tambridge.bridge.config import BridgeConfig
 from tambridge.frontend.contract import KeyframeEvent, TrackResult
@@ -99,6 +101,8 @@ class MappingStage:
         self._cache: collections.OrderedDict[int, ViewImages] = collections.OrderedDict()
         self._rng = np.random.default_rng(seed)
         self._frames_since_keyframe = 0
+        # The latest tracked frames, oldest first (sharpness_median_frames of them, at least the window's).
+        self._recent: list[Candidate] = []
 
     def threads(self) -> contextlib.AbstractContextManager:
         return compute_threads(TORCH_THREADS, self.mapper_config.kernel_threads)
@@ -165,6 +169,43 @@ class MappingStage:
 
     # ---- online --------------------------------------------------------------------------------------------
 
+    def on_tracked(self, result: TrackResult, frame: Frame, sharpness: float | None = None) -> None:
+        """Note a tracked frame (before its keyframe event, if it is a keyframe) as a candidate view of the next
+        keyframe; ``sharpness``: its :func:`tambridge.images.sharpness` where the read-ahead scored it."""
+        bridge = self.bridge_config
+        if not result.tracked or not bridge.enabled:
+            return
+        # The per-frame share of the bridge's cost (a score where the read-ahead gave none).
+        score = frame_sharpness(frame.rgb) if sharpness is None else sharpness
+        self._recent.append(Candidate(frame.index, np.asarray(result.world_from_camera, np.float64), score,
+                                      result.inlier_count))
+        del self._recent[: max(0, len(self._recent) - max(bridge.sharpness_median_frames, bridge.sharpest_window + 1))]
+
+    def view_frame(self, event: KeyframeEvent, selection: Selection, frame: Frame) -> tuple[Candidate, Selection]:
+        """The frame to map for a keyframe eq. 3 selected, and its final selection: the sharpest candidate of its
+        window within eq. 3 (:func:`sharpest_candidate`), or ``TOO_BLURRED`` where that is far below the recent
+        median and the map already explains the keyframe (:meth:`uncovered`); the first keyframe and an uncovered
+        one eq. 3 rejected are mapped as they are."""
+        bridge = self.bridge_config
+        earlier = [candidate for candidate in self._recent if candidate.frame_index < event.frame_index]
+        own = [candidate.sharpness for candidate in self._recent if candidate.frame_index == event.frame_index]
+        keyframe = Candidate(event.frame_index, np.asarray(event.world_from_camera, np.float64),
+                             own[0] if own else frame_sharpness(frame.rgb), event.shared_with_previous)
+        if selection in (Selection.FIRST, Selection.UNCOVERED):
+            return keyframe, selection
+        # Frames after the latest view only: an earlier one is already the map's.
+        latest_view = max((view.frame_index for view in self.views), default=-1)
+        window = [candidate for candidate in earlier[len(earlier) - bridge.sharpest_window:]
+                  if candidate.frame_index > latest_view] if bridge.sharpest_window else []
+        chosen = sharpest_candidate(keyframe, window, event.previous_total, bridge.alpha, bridge.beta,
+                                    bridge.sharper_by)
+        recent = [candidate.sharpness for candidate in earlier]
+        # A blurred view is still better than none where the map lacks what the keyframe sees.
+        if too_blurred(chosen.sharpness, recent, bridge.blur_reject_ratio, bridge.sharpest_window + 1) and \
+                not self.uncovered(frame, self.rendering_pose(event.frame_index, event.world_from_camera)):
+            return chosen, Selection.TOO_BLURRED
+        return chosen, selection
+
     def on_keyframe(self, event: KeyframeEvent, frame: Frame, keyframe_poses: dict[int, np.ndarray]) -> None:
         """One keyframe from the frontend: select, refine, map. ``keyframe_poses`` are the frontend's current ones."""
         with self.threads():
@@ -178,29 +219,61 @@ class MappingStage:
         self.update_keyframe_poses(keyframe_poses)
         if not selection.selected and self.uncovered(frame, self.rendering_pose(event.frame_index, event.world_from_camera)):
             selection = Selection.UNCOVERED
+        chosen = Candidate(event.frame_index, np.asarray(event.world_from_camera, np.float64), float("nan"),
+                           event.shared_with_previous)
+        if selection.selected and bridge.enabled:
+            with self.run_log.stage("bridge"):
+                chosen, selection = self.view_frame(event, selection, frame)
         self.selections[selection.name] += 1
         if not selection.selected:
             return
-        images = self.images(event.frame_index, frame)
+        replaced = chosen.frame_index != event.frame_index
+        if replaced:
+            self.selections[SHARPER_FRAME] += 1
+            # Read again (once per view, the bridge's cost): the window keeps no images.
+            with self.run_log.stage("bridge"):
+                images = self.images(chosen.frame_index)
+        else:
+            images = self.images(event.frame_index, frame)
+        # The frame's pose relative to its keyframe as tracked (the keyframe pose as inserted, before local BA).
+        keyframe_from_frame = (inverse(np.asarray(event.world_from_camera, np.float64)) @ chosen.world_from_camera
+                               if replaced else np.eye(4))
+        frame_pose = self.keyframe_poses[event.keyframe_id] @ keyframe_from_frame
         exposure = self.new_exposure()
         refinement = None
-        keyframe_from_view = np.eye(4)
-        if bridge.enabled and len(self.map):
+        keyframe_from_view = keyframe_from_frame
+        if bridge.enabled and bridge.refine_poses and len(self.map):
             with self.run_log.stage("bridge"):
-                keypoints = (np.asarray(event.keypoints_px, np.float64).reshape(-1, 2) + 0.5) * self.mapper_config.resolution_scale - 0.5
+                # A replacing frame has no keypoints of its own: its refinement uses the rendering terms only.
+                points = np.zeros((0, 3)) if replaced else event.points_world_m
+                keypoints = np.zeros((0, 2)) if replaced else \
+                    (np.asarray(event.keypoints_px, np.float64).reshape(-1, 2) + 0.5) * self.mapper_config.resolution_scale - 0.5
                 # Only the Gaussians in view at the frontend pose: the refinement moves the pose by centimetres.
-                in_view = self.map.visible_rows(self.camera, self.keyframe_poses[event.keyframe_id])
+                in_view = self.map.visible_rows(self.camera, frame_pose)
                 with torch.no_grad():
                     gaussians = self.map.gaussians(rows=in_view)
                 # The colour term compares map colours: the frame's, through the exposure it starts from.
                 observed_rgb = images.rgb if exposure is None else exposure.invert(images.rgb)
-                refinement = refine_render_pose(gaussians, self.camera, self.keyframe_poses[event.keyframe_id],
-                                         observed_rgb, images.depth_m, event.points_world_m, keypoints, bridge,
-                                         backend=self.mapper_config.backend)
+                refinement = refine_render_pose(gaussians, self.camera, frame_pose, observed_rgb, images.depth_m, points,
+                                                keypoints, bridge, backend=self.mapper_config.backend,
+                                                colour_weight=self.colour_weight(chosen))
                 keyframe_from_view = inverse(self.keyframe_poses[event.keyframe_id]) @ refinement.world_from_camera
-        view = MappingView(event.keyframe_id, event.frame_index, keyframe_from_view, selection, refinement, exposure)
+                logger.info("frame %d: reprojection %.2f px, joint loss %.4f -> %.4f, pose moved %.2f mm%s",
+                             chosen.frame_index, refinement.reprojection_px, refinement.loss_initial, refinement.loss_final,
+                             1e3 * np.linalg.norm(refinement.world_from_camera[:3, 3] - frame_pose[:3, 3]),
+                             " (skipped)" if refinement.skipped else "")
+        view = MappingView(event.keyframe_id, chosen.frame_index, keyframe_from_view, selection, refinement, exposure,
+                           keyframe_from_frame=keyframe_from_frame, sharpness=chosen.sharpness)
         with self.run_log.stage("mapping"):
             self.map_view(view, images)
+
+    def colour_weight(self, chosen: Candidate) -> float:
+        """Scale of the refinement's colour term for a view: its sharpness over the recent median, at most 1."""
+        recent = [candidate.sharpness for candidate in self._recent]
+        if not self.bridge_config.sharpness_weighted_colour or not recent:
+            return 1.0
+        median = float(np.median(recent))
+        return 1.0 if median <= 0 else float(min(1.0, chosen.sharpness / median))
 
     def needs_view(self, result: TrackResult, frame: Frame) -> bool:
         """Whether a tracked frame that is not a keyframe should become a mapping view because the map lacks too
@@ -329,7 +402,8 @@ class MappingStage:
         if not self.views:
             return world_from_camera.copy()
         view = self.anchor_view(frame_index)
-        return self.view_pose(view) @ inverse(self.keyframe_poses[view.keyframe_id]) @ world_from_camera
+        view_frame_pose = self.keyframe_poses[view.keyframe_id] @ view.keyframe_from_frame
+        return self.view_pose(view) @ inverse(view_frame_pose) @ world_from_camera
 
     def anchor_view(self, frame_index: int) -> MappingView:
         """The mapping view a frame is rendered from: the latest at or before it (the first for earlier frames)."""
