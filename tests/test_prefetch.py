@@ -87,8 +87,9 @@ def test_leaving_early_drops_the_frame_read_ahead():
         for frame, _ in prefetcher:
             if frame.index == 2:
                 break
-    # Frames 0-2 were used and frame 3 read ahead (unless cancelled first); nothing further, and no thread is left.
-    assert len(frames.readers) in (3, 4)
+    # Frames 0-2 were used and frames 3 and 4 queued to be read ahead (each read unless cancelled first); nothing
+    # further, and no thread is left.
+    assert len(frames.readers) in (3, 4, 5)
     assert not _prefetch_threads()
 
 
