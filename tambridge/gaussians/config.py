@@ -72,7 +72,7 @@ class MapperConfig:
     lr_exposure: float = setting(1e-2, "Adam learning rate of the per-view exposure", POSITIVE)
     exposure_anchor: ExposureAnchor = setting(ExposureAnchor.median, "the map's colours are those of: median (the "
                                               "median view's exposure) or first_view (the first view's)")
-    exposure_prior: float = setting(0.3, "weight of the prior pulling each view's exposure to the identity (against "
+    exposure_prior: float = setting(0.0, "weight of the prior pulling each view's exposure to the identity (against "
                                          "the gain-colour ambiguity; 0: none)", NON_NEGATIVE)
     densify_silhouette: float = setting(0.99, "densify where the rendered silhouette is below this (the paper's gamma)",
                                         FRACTION)
