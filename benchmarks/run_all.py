@@ -95,7 +95,8 @@ def run_method(method: Method, sequence: Path, out: Path, max_frames: int | None
     if camera_file is not None:  # every method reads the sequence the same way
         command += ["--camera", str(camera_file)]
     if method.command[0] == "reconstruct":
-        command += ["--quiet", "--device", device]
+        # A rerun replaces this benchmark's own earlier output folder (a finished run is refused otherwise).
+        command += ["--quiet", "--device", device, "--overwrite"]
     if max_frames is not None:
         command += ["--max-frames", str(max_frames)]
     started = time.perf_counter()
@@ -108,7 +109,9 @@ def run_method(method: Method, sequence: Path, out: Path, max_frames: int | None
            "seconds": seconds, "peak_memory_mb": usage.ru_maxrss / 1024.0}
     metrics_path = out / "metrics.json"
     # A reconstruct's metrics (COLMAP's metrics.json has other keys, and no frame rate or rendering scores).
-    metrics = read_metrics(metrics_path) if method.command[0] == "reconstruct" and metrics_path.is_file() else None
+    # A failed run's folder may hold an earlier run's metrics.json: none of its figures are this run's.
+    metrics = (read_metrics(metrics_path) if row["exit_status"] == 0 and method.command[0] == "reconstruct"
+               and metrics_path.is_file() else None)
     # What the run itself recorded (a reconstruct without the mapper ran on the CPU); COLMAP always runs there.
     row["device"] = metrics.device.device if metrics is not None else (device if method.command[0] == "reconstruct" else "cpu")
     if metrics is not None and metrics.device.gpu is not None:

@@ -53,7 +53,7 @@ class MapperConfig:
     # (edges, texture) that the coarse online mapping cannot see. Frames are read again, a window at a time.
     sharp_resolution_scale: float = setting(1.0, "the sharpening pass after the final one runs on frames resized by "
                                                  "this (1: the camera's resolution)", Range(0, 2, low_open=True))
-    sharp_iterations_per_view: int = setting(3, "Adam steps per mapping view in the sharpening pass (0: off)",
+    sharp_iterations_per_view: int = setting(1, "Adam steps per mapping view in the sharpening pass (0: off)",
                                              NON_NEGATIVE)
     # Off by default: with tracked poses the added Gaussians copy one view's detail where the others disagree, and
     # novel views render worse (docs/benchmarks.md).
