@@ -176,10 +176,13 @@ def reconstruct(
             if live_view is not None:
                 with run_log.stage("viewer"):
                     log_final_state(live_view, sequence, tracking, mapping)
-        metrics, errors = evaluate_run(sequence, config, tracking, mapping, device, run_log, counters,
-                                       peak_memory_tracking_mb, output_dir)
+        # Scored and shown as a viewer reads them: the files just written, loaded once.
+        exported = None if mapping is None else ExportedMap.from_run(output_dir, config.mapper, device)
+        metrics, errors = evaluate_run(sequence, config, tracking, mapping, exported, device, run_log, counters,
+                                       peak_memory_tracking_mb)
         metrics.world = WorldMetrics(**world.summary())
-        write_run_report(output_dir, metrics, sequence, errors, mapping, tracking.trajectory, counters.gaussian_counts)
+        write_run_report(output_dir, metrics, sequence, errors, mapping, exported, tracking.trajectory,
+                         counters.gaussian_counts)
         write_metrics(output_dir / "metrics.json", metrics)
         # The run is whole: nothing is left to resume.
         checkpoint_file.unlink(missing_ok=True)
@@ -319,12 +322,13 @@ def restore_run(checkpoint: Checkpoint, frontend: Frontend, mapping: MappingStag
     return checkpoint.next_frame
 
 
-def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResult,
-                 mapping: MappingStage | None, device: torch.device, run_log: RunLog, counters: RunCounters,
-                 peak_memory_tracking_mb: float, output_dir: Path) -> tuple[RunMetrics, TrajectoryErrors | None]:
+def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResult, mapping: MappingStage | None,
+                 exported: ExportedMap | None, device: torch.device, run_log: RunLog, counters: RunCounters,
+                 peak_memory_tracking_mb: float) -> tuple[RunMetrics, TrajectoryErrors | None]:
     """The run's metrics, and its trajectory's errors against the ground truth (None without one).
 
-    The map is scored as the run holds it and as exported: ``output_dir``'s splats.ply and trajectory.txt read back.
+    The map is scored as the run holds it and as ``exported`` (splats.ply and trajectory.txt read back; None
+    exactly when ``mapping`` is).
     The run's clock stops here: the map's rendering evaluation and the trajectory's are not part of it.
     """
     # End to end = what a user waits for to get trajectory and map.
@@ -332,7 +336,6 @@ def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResul
     fps_per_stage = {name: len(sequence) / max(seconds, 1e-9) for name, seconds in run_log.stage_seconds.items()}
     map_metrics = None
     if mapping is not None:
-        exported = ExportedMap.from_run(output_dir, config.mapper, device)
         map_metrics = mapping_metrics(mapping, tracking, sequence, config.evaluation, run_log, exported)
     metrics = RunMetrics(
         sequence=str(Path(sequence.folder).resolve()),

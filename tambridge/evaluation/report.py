@@ -290,8 +290,10 @@ REPORT_EXPORTED_VIEWS = 3
 
 
 def write_run_report(output_dir: Path, metrics: RunMetrics, sequence: RgbdSequence, errors: TrajectoryErrors | None,
-                     mapping: MappingStage | None, trajectory: Trajectory, gaussian_counts: list[tuple[int, int]]) -> None:
-    """``output_dir/report/index.html``; adds COLMAP when ``output_dir/colmap/trajectory.txt`` exists."""
+                     mapping: MappingStage | None, exported: ExportedMap | None, trajectory: Trajectory,
+                     gaussian_counts: list[tuple[int, int]]) -> None:
+    """``output_dir/report/index.html``; adds COLMAP when ``output_dir/colmap/trajectory.txt`` exists.
+    ``exported``: ``output_dir``'s splats.ply and trajectory.txt read back (None exactly when ``mapping`` is)."""
     trajectory_errors = {}
     if errors is not None:
         trajectory_errors["tambridge (SE(3))"] = errors
@@ -313,17 +315,16 @@ def write_run_report(output_dir: Path, metrics: RunMetrics, sequence: RgbdSequen
     write_report(output_dir / "report", metrics, trajectory_errors, pairs,
                  (counts[:, 0], counts[:, 1]) if len(counts) else None, title=f"tambridge: {metrics.sequence}",
                  web_viewer=web_viewer,
-                 exported_pairs=exported_pairs(output_dir, sequence, mapping) if mapping is not None else ())
+                 exported_pairs=exported_pairs(exported, sequence, mapping) if mapping is not None else ())
 
 
-def exported_pairs(output_dir: Path, sequence: RgbdSequence, mapping: MappingStage) -> list[RenderPair]:
+def exported_pairs(exported: ExportedMap, sequence: RgbdSequence, mapping: MappingStage) -> list[RenderPair]:
     """:data:`REPORT_EXPORTED_VIEWS` novel views (frames that are no mapping view, evenly spread): the input frame
-    beside ``output_dir``'s splats.ply rendered at its trajectory.txt pose, at full resolution."""
+    beside ``exported`` rendered at its trajectory.txt pose, at full resolution."""
     view_frames = {view.frame_index for view in mapping.views}
     novel = [index for index in range(len(sequence)) if index not in view_frames]
     if not novel:
         return []
-    exported = ExportedMap.from_run(output_dir, mapping.mapper_config, mapping.device)
     chosen = [novel[i] for i in np.unique(np.linspace(0, len(novel) - 1, REPORT_EXPORTED_VIEWS).astype(int))]
     with mapping.threads():
         return [RenderPair(f"frame {index}", sequence[index].rgb,
