@@ -21,7 +21,7 @@ import dataclasses
 import numba
 import numpy as np
 
-from tambridge.camera import pinhole_numba, pinhole_ray
+from tambridge.camera import pinhole, pinhole_numba, pinhole_ray
 from tambridge.frontend.orb.reprojection import MIN_DEPTH_M
 from tambridge.geometry import inverse, transform_points
 
@@ -193,8 +193,7 @@ def dense_residuals_reference(camera_from_world: np.ndarray, term: DenseTerm) ->
     in_front = z > MIN_DEPTH_M
     safe_z = np.where(in_front, z, 1.0)
     K = term.K
-    u = K[0, 0] * points_reference[:, 0] / safe_z + K[0, 2]
-    v = K[1, 1] * points_reference[:, 1] / safe_z + K[1, 2]
+    u, v = pinhole(points_reference[:, 0], points_reference[:, 1], safe_z, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     column = np.floor(u / reference.stride + 0.5).astype(np.int64)
     row = np.floor(v / reference.stride + 0.5).astype(np.int64)
     height, width = reference.normals.shape[:2]
