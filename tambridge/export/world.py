@@ -20,6 +20,7 @@ import dataclasses
 import logging
 
 import numpy as np
+import open3d as o3d
 import torch
 import trimesh
 
@@ -143,8 +144,8 @@ def camera_up(world_from_camera: np.ndarray) -> np.ndarray:
 
 
 def dominant_planes(points_m: np.ndarray, seed: int = 0) -> list[Plane]:
-    """Up to :data:`MAX_PLANES` planes of points (P, 3), largest first: RANSAC on what earlier planes left, each
-    refitted by least squares to its inliers; a plane holding less than :data:`PLANE_MIN_SHARE` ends the search.
+    """Up to :data:`MAX_PLANES` planes of points (P, 3), largest first: Open3D's RANSAC (``segment_plane``, refitted
+    to its inliers) on what earlier planes left; a plane holding less than :data:`PLANE_MIN_SHARE` ends the search.
     Deterministic for a ``seed`` and the set of points, whatever their order."""
     rng = np.random.default_rng(seed)
     points = np.asarray(points_m, np.float64).reshape(-1, 3)
@@ -156,25 +157,19 @@ def dominant_planes(points_m: np.ndarray, seed: int = 0) -> list[Plane]:
         points = points[np.sort(rng.choice(len(points), PLANE_MAX_POINTS, replace=False))]
     needed = max(3, PLANE_MIN_SHARE * len(points))
     planes = []
+    # Open3D's RANSAC draws from its own generator: seeded, it gives the same planes for the same (sorted) points.
+    o3d.utility.random.seed(int(rng.integers(0, 2**31 - 1)))
     while len(planes) < MAX_PLANES and len(points) >= needed:
-        corners = points[rng.integers(0, len(points), (PLANE_ITERATIONS, 3))]
-        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        lengths = np.linalg.norm(normals, axis=1)
-        usable = lengths > 1e-12
-        normals, corners = normals[usable] / lengths[usable, None], corners[usable]
-        if not len(normals):
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        # segment_plane refits the best sample's plane to all of its inliers (least squares) before returning.
+        (a, b, c, d), inliers = cloud.segment_plane(PLANE_DISTANCE_M, 3, PLANE_ITERATIONS)
+        if len(inliers) < needed:
             break
-        offsets = -(normals * corners[:, 0]).sum(axis=1)
-        counts = (np.abs(points @ normals.T + offsets) < PLANE_DISTANCE_M).sum(axis=0)
-        best = int(np.argmax(counts))
-        inliers = np.abs(points @ normals[best] + offsets[best]) < PLANE_DISTANCE_M
-        if inliers.sum() < needed:
-            break
-        centre = points[inliers].mean(axis=0)
-        normal = np.linalg.svd(points[inliers] - centre, full_matrices=False)[2][2]
-        inliers = np.abs((points - centre) @ normal) < PLANE_DISTANCE_M
-        planes.append(Plane(normal, centre, int(inliers.sum())))
-        points = points[~inliers]
+        normal = np.array([a, b, c]) / np.linalg.norm([a, b, c])
+        inlier_mask = np.zeros(len(points), bool)
+        inlier_mask[np.asarray(inliers)] = True
+        planes.append(Plane(normal, points[inlier_mask].mean(axis=0), int(inlier_mask.sum())))
+        points = points[~inlier_mask]
     return planes
 
 
