@@ -152,12 +152,15 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--segments", nargs="*", default=["fr1_xyz"], choices=list(SEGMENTS))
+    parser.add_argument("--folder", type=Path, action="append", default=[],
+                        help="also a whole sequence folder (a synthetic one: tambridge synth)")
     parser.add_argument("--variants", nargs="*", default=[""], help="comma-separated KEY=VALUE overrides per run")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "depth_stamps.json")
     args = parser.parse_args()
     rows = []
-    for name in args.segments:
-        segment = SEGMENTS[name]
+    segments = {name: SEGMENTS[name] for name in args.segments}
+    segments.update({folder.name: dict(folder=folder, camera=None, start=0, end=None) for folder in args.folder})
+    for name, segment in segments.items():
         sequence = open_sequence(segment["folder"], camera_file=segment["camera"])
         end = len(sequence) if segment["end"] is None else min(segment["end"], len(sequence))
         frames = [sequence[index] for index in range(segment["start"], end)]
