@@ -2,7 +2,8 @@
 image: per-frame error against the colour stamp's offset from the depth stamp times the camera's velocity.
 
     python benchmarks/depth_stamps.py                                      # fr1/xyz, default settings
-    python benchmarks/depth_stamps.py --variants "" depth_time_compensation=false --segments fr1_xyz fr1_xyz_first37
+    python benchmarks/depth_stamps.py --variants "" depth_time_compensation=true --segments fr1_xyz fr1_xyz_first37
+    python benchmarks/depth_stamps.py --segments --folder SYNTH_DIR      # a synthetic sequence (tambridge synth)
 
 Each variant is one tracking run (the ORB frontend, default settings plus the variant's ``KEY=VALUE`` overrides
 separated by commas, "" for none; loop closure, global BA, mapping thread) over a segment of

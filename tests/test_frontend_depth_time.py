@@ -6,6 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from tambridge.errors import ConfigError
 from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.frontend.orb.config import OrbFrontendConfig
 from tambridge.frontend.orb.depth_time import (
@@ -69,6 +70,8 @@ def test_frames_carry_their_depth_stamp(tmp_path):
     write_synthetic_sequence(folder, SynthOptions(frame_count=3, width=32, height=24, depth_delay_s=-0.012))
     sequence = open_sequence(folder)
     assert [frame.depth_delay_s for frame in sequence] == pytest.approx([-0.012] * 3, abs=2e-6)
+    with pytest.raises(ConfigError, match="depth delay 0.02 s"):
+        SynthOptions(depth_delay_s=0.02)
 
 
 def test_compensation_lowers_the_error_of_a_delayed_depth(tmp_path):

@@ -22,7 +22,7 @@ from tambridge.camera import Camera
 from tambridge.errors import ConfigError
 from tambridge.files import atomic_path, atomic_write_text
 from tambridge.geometry import inverse, look_at, transform_points
-from tambridge.io.tum import GT_RGB_FOLDER, read_file_list
+from tambridge.io.tum import GT_RGB_FOLDER, MAX_ASSOCIATION_DIFFERENCE_S, read_file_list
 from tambridge.trajectory import Trajectory, format_tum_trajectory
 
 SYNTHETIC_DEPTH_SCALE = 5000.0
@@ -383,6 +383,9 @@ class SynthOptions:
         problems = []
         if not 0.0 <= self.exposure_s <= 1.0 / self.fps:
             problems.append(f"motion blur exposure {self.exposure_s} s: must be in [0, 1/fps = {1.0 / self.fps:.4g}] s")
+        if not abs(self.depth_delay_s) < MAX_ASSOCIATION_DIFFERENCE_S:
+            problems.append(f"depth delay {self.depth_delay_s} s: must lie within {MAX_ASSOCIATION_DIFFERENCE_S} s of "
+                            "the colour stamp (the reader pairs colour and depth images no further apart)")
         if self.blur_subframes is not None and self.blur_subframes < 1:
             problems.append(f"blur sub-frames {self.blur_subframes}: must be at least 1")
         bursts = self.bursts
