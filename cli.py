@@ -235,9 +235,12 @@ def _parse_size(size: str) -> tuple[int, int]:
               help="Metres between a separate colour camera and the depth camera (unregistered, Kinect v1 style; 0: registered).")
 @click.option("--colour-focal-scale", type=float, default=1.0, show_default=True,
               help="The separate colour camera's focal length over the depth camera's (Kinect v1: about 0.9).")
+@click.option("--depth-delay", type=float, default=0.0, show_default=True, metavar="SECONDS",
+              help="Depth images taken this long after their colour images (negative: before), stamped and rendered "
+                   "at that time, as a Kinect's two streams (TUM: -17 to +16 ms).")
 @click.option("--seed", type=int, default=0)
 def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_subframes, rotation_bursts, burst_speed,
-          burst_duration, supersampling, colour_baseline, colour_focal_scale, seed) -> None:
+          burst_duration, supersampling, colour_baseline, colour_focal_scale, depth_delay, seed) -> None:
     """Write a synthetic TUM-layout sequence (textured room, closed loop) with exact ground truth."""
     from tambridge.io.synthetic import RotationBursts, SynthOptions, write_synthetic_sequence
 
@@ -248,7 +251,8 @@ def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_su
                            exposure_s=exposure, blur_subframes=blur_subframes,
                            bursts=RotationBursts(rotation_bursts, burst_speed, burst_duration),
                            supersampling=supersampling, seed=seed,
-                           colour_baseline_m=colour_baseline, colour_focal_scale=colour_focal_scale)
+                           colour_baseline_m=colour_baseline, colour_focal_scale=colour_focal_scale,
+                           depth_delay_s=depth_delay)
     write_synthetic_sequence(output_dir, options)
     click.echo(f"wrote {frames} frames to {output_dir}")
 

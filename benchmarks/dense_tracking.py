@@ -119,14 +119,6 @@ def ground_truth_at(ground_truth, timestamps_s: np.ndarray):
     return Trajectory(timestamps_s[inside], np.stack(poses))
 
 
-def depth_stamp_s(sequence, frame) -> float:
-    """The frame's depth stamp: its depth file's name in TUM's layout, else the colour stamp."""
-    try:
-        return float(Path(sequence.depth_paths[frame.index]).stem)
-    except ValueError:
-        return frame.timestamp_s
-
-
 def time_offset_scan(estimate, ground_truth, offsets_ms=range(-100, 110, 10)) -> dict:
     """ATE (cm) of ``estimate`` against the ground truth interpolated at the frame times shifted by each offset:
     a minimum away from 0 is a clock offset between the camera and the motion capture."""
@@ -159,8 +151,8 @@ def depth_fit(frames, sequence, estimate, gap: int = 1, step: int = 10) -> dict:
 
     config = scaled_for_image(OrbFrontendConfig(), sequence.camera.width, sequence.camera.height)
     K = sequence.camera.K
-    # The depth was taken at its own stamp (the file name in TUM's layout), not the colour's.
-    times = np.array([depth_stamp_s(sequence, frame) for frame in frames])
+    # The depth was taken at its own stamp, not the colour's.
+    times = np.array([frame.timestamp_s + frame.depth_delay_s for frame in frames])
     truth = ground_truth_at(sequence.ground_truth, times)
     truth_by_time = dict(zip(truth.timestamps_s, truth.world_from_camera))
     estimate_by_time = dict(zip(estimate.timestamps_s, estimate.world_from_camera))

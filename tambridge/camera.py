@@ -51,6 +51,7 @@ def pinhole_ray(u, v, fx, fy, cx, cy):
 # level, so a kernel computes exactly what it did with the expression written out).
 pinhole_numba = numba.njit(cache=True, inline="always")(pinhole)
 pinhole_inverse_depth_numba = numba.njit(cache=True, inline="always")(pinhole_inverse_depth)
+pinhole_ray_numba = numba.njit(cache=True, inline="always")(pinhole_ray)
 
 
 @dataclasses.dataclass(frozen=True)

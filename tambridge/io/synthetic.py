@@ -22,7 +22,7 @@ from tambridge.camera import Camera
 from tambridge.errors import ConfigError
 from tambridge.files import atomic_path, atomic_write_text
 from tambridge.geometry import inverse, look_at, transform_points
-from tambridge.io.tum import GT_RGB_FOLDER, read_file_list
+from tambridge.io.tum import GT_RGB_FOLDER, MAX_ASSOCIATION_DIFFERENCE_S, read_file_list
 from tambridge.trajectory import Trajectory, format_tum_trajectory
 
 SYNTHETIC_DEPTH_SCALE = 5000.0
@@ -375,11 +375,17 @@ class SynthOptions:
     colour_focal_scale: float = 1.0
     # Every camera turned about its optical axis by this (degrees), as a handheld camera held askew.
     roll_deg: float = 0.0
+    # The depth image taken this long after the colour image (seconds; negative: before), as a Kinect's two streams
+    # are: depth.txt gets that stamp and the depth is rendered at the pose of that time.
+    depth_delay_s: float = 0.0
 
     def __post_init__(self) -> None:
         problems = []
         if not 0.0 <= self.exposure_s <= 1.0 / self.fps:
             problems.append(f"motion blur exposure {self.exposure_s} s: must be in [0, 1/fps = {1.0 / self.fps:.4g}] s")
+        if not abs(self.depth_delay_s) < MAX_ASSOCIATION_DIFFERENCE_S:
+            problems.append(f"depth delay {self.depth_delay_s} s: must lie within {MAX_ASSOCIATION_DIFFERENCE_S} s of "
+                            "the colour stamp (the reader pairs colour and depth images no further apart)")
         if self.blur_subframes is not None and self.blur_subframes < 1:
             problems.append(f"blur sub-frames {self.blur_subframes}: must be at least 1")
         bursts = self.bursts
@@ -420,8 +426,8 @@ class SynthOptions:
 def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions()) -> Trajectory:
     """Render a sequence into ``folder`` in the TUM layout; returns its ground-truth trajectory.
 
-    Depth stamps lag colour stamps by 5 ms, as real Kinect streams do, so association is exercised. Depth is
-    always sharp: the pose at the frame's timestamp, as a depth camera's short structured-light exposure is.
+    Depth is always sharp: the pose at its own stamp (the colour stamp plus ``depth_delay_s``), as a depth camera's
+    short structured-light exposure is; the ground truth is the pose at the colour stamps.
     With motion blur or colour noise, ``gt_rgb/`` (same file names as ``rgb/``) holds every frame's sharp,
     noise-free colour image at its ground-truth pose, for evaluation.
     """
@@ -442,6 +448,9 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
     depth_from_colour = np.linalg.inv(options.colour_from_depth())
     for index, pose in enumerate(world_from_camera):
         colour, depth_m = render(scene, camera, pose, options.supersampling)
+        if options.depth_delay_s != 0.0:
+            depth_pose = path.poses(np.array([index + options.depth_delay_s * options.fps]))[0]
+            depth_m = render(scene, camera, depth_pose, options.supersampling)[1]
         if not options.registered:
             colour = render(scene, colour_camera, pose @ depth_from_colour, options.supersampling)[0]
         sharp = colour
@@ -456,7 +465,7 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
         if options.depth_noise_m > 0:
             depth_m = depth_m + (rng.normal(0.0, 1.0, depth_m.shape) * options.depth_noise_m * depth_m**2).astype(np.float32)
         rgb_name = f"rgb/{timestamps[index]:.6f}.png"
-        depth_stamp = timestamps[index] + 0.005
+        depth_stamp = timestamps[index] + options.depth_delay_s
         depth_name = f"depth/{depth_stamp:.6f}.png"
         depth16 = np.clip(depth_m * SYNTHETIC_DEPTH_SCALE + 0.5, 0, 65535).astype(np.uint16)
         _write_png(folder / rgb_name, cv2.cvtColor(to_rgb8(colour), cv2.COLOR_RGB2BGR))

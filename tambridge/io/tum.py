@@ -27,12 +27,22 @@ GT_RGB_FOLDER = "gt_rgb"
 
 @dataclasses.dataclass
 class Frame:
-    """One RGB-D frame: ``rgb`` (H, W, 3) uint8, ``depth_m`` (H, W) float32 metres (0 = invalid)."""
+    """One RGB-D frame: ``rgb`` (H, W, 3) uint8, ``depth_m`` (H, W) float32 metres (0 = invalid).
+
+    ``timestamp_s`` is the colour image's time, the frame's; ``depth_timestamp_s`` the depth image's, where the
+    sensor took it at another time (TUM: up to 20 ms apart), None where both were taken together.
+    """
 
     index: int
     timestamp_s: float
     rgb: np.ndarray
     depth_m: np.ndarray
+    depth_timestamp_s: float | None = None
+
+    @property
+    def depth_delay_s(self) -> float:
+        """``depth_timestamp_s - timestamp_s`` in seconds (0 where depth and colour were taken together)."""
+        return 0.0 if self.depth_timestamp_s is None else self.depth_timestamp_s - self.timestamp_s
 
 
 def read_file_list(path: Path) -> list[tuple[float, str]]:
@@ -145,6 +155,7 @@ class RgbdSequence:
         timestamps_s: np.ndarray,
         ground_truth: Trajectory | None,
         gt_rgb_paths: list[Path] | None = None,
+        depth_timestamps_s: np.ndarray | None = None,
     ) -> None:
         self.folder = folder
         self.sensor = sensor
@@ -153,6 +164,8 @@ class RgbdSequence:
         self.gt_rgb_paths = gt_rgb_paths
         self.depth_paths = depth_paths
         self.timestamps_s = timestamps_s
+        # The depth images' own times (N,), or None where they are the colour images' (``timestamps_s``).
+        self.depth_timestamps_s = depth_timestamps_s
         self.ground_truth = ground_truth
         self.camera: Camera = sensor.camera.undistorted()
         self._undistort_maps = None
@@ -184,7 +197,9 @@ class RgbdSequence:
             map_x, map_y = self._undistort_maps
             # Nearest neighbour: blending depth across an edge invents surfaces that do not exist.
             depth_m = cv2.remap(depth_m, map_x, map_y, cv2.INTER_NEAREST)
-        return Frame(index=index, timestamp_s=float(self.timestamps_s[index]), rgb=rgb, depth_m=depth_m)
+        depth_stamp = None if self.depth_timestamps_s is None else float(self.depth_timestamps_s[index])
+        return Frame(index=index, timestamp_s=float(self.timestamps_s[index]), rgb=rgb, depth_m=depth_m,
+                     depth_timestamp_s=depth_stamp)
 
     @property
     def has_sharp_rgb(self) -> bool:
@@ -327,6 +342,7 @@ def open_sequence(
         timestamps_s=np.array([rgb_stamps[i] for i, _ in pairs]),
         ground_truth=ground_truth,
         gt_rgb_paths=_gt_rgb_paths(folder, [rgb_list[i][1] for i, _ in pairs]),
+        depth_timestamps_s=np.array([depth_stamps[j] for _, j in pairs]),
     )
     if check_depth_scale:
         check_depth_scale_plausible(sequence)

@@ -54,6 +54,10 @@ class OrbFrontendConfig:
     # surface and it costs accuracy (depth seeds new points either way).
     depth_residuals: bool = setting(True, "each observation with depth adds an inverse-depth residual to bundle "
                                           "adjustment")
+    # TUM's depth images are taken up to 20 ms from their colour images (tambridge/frontend/orb/depth_time.py). Off
+    # by default: on fr1/xyz with the mapping thread it was no better, and it costs tracking time (docs/benchmarks.md).
+    depth_time_compensation: bool = setting(False, "move each frame's depth to its colour image's time with the motion "
+                                                   "prior, where the frame's depth has its own timestamp")
     # Matching by projecting local-map points with the motion prior.
     search_radius_px: float = setting(15.0, "radius searched around a projected local-map point (px)", POSITIVE)
     refine_radius_px: float = setting(4.0, "search radius after the pose refinement (px)", POSITIVE)

@@ -146,9 +146,14 @@ class OrbExtractor:
             octaves = octaves[keep]
         else:
             octaves = np.fromiter((k.octave for k in kept), np.int32, len(kept))
-        points = kept_points
-        return lift_keypoints(points, octaves, descriptors, rgb, depth_m, camera, config.min_depth_m, config.max_depth_m,
-                              config.depth_edge_window_px, config.depth_edge_ratio)
+        return self.lift(kept_points, octaves, descriptors, rgb, depth_m)
+
+    def lift(self, keypoints_px: np.ndarray, octaves: np.ndarray, descriptors: np.ndarray, rgb: np.ndarray,
+             depth_m: np.ndarray) -> FrameFeatures:
+        """:func:`lift_keypoints` with this extractor's camera and depth settings."""
+        config = self.config
+        return lift_keypoints(keypoints_px, octaves, descriptors, rgb, depth_m, self.camera, config.min_depth_m,
+                              config.max_depth_m, config.depth_edge_window_px, config.depth_edge_ratio)
 
 
 def lift_keypoints(

@@ -1,10 +1,11 @@
 """The tracking-centred ORB RGB-D frontend (paper sec. 3.2, "ORB visual odometry similar to ORB-SLAM3").
 
-Per frame: ORB features with depth -> map points of the local map projected with the constant-velocity
-prior and matched by descriptor near their projection -> motion-only refinement with a Huber kernel from
-the prior (PnP-RANSAC only if the prior leaves most matches outliers) -> a second, tighter projection search
-and refinement. Tracking a frame decides whether it becomes a keyframe (ORB-SLAM2's rules); a keyframe adds
-map points from its depth, culls bad recent points, fuses duplicates (points keep their most distinctive
+Per frame: ORB features with depth (with ``depth_time_compensation``, the depth first moved to the colour image's
+time by the constant-velocity prior: :mod:`~tambridge.frontend.orb.depth_time`) -> map points of the local map
+projected with the constant-velocity prior and matched by descriptor near their projection -> motion-only
+refinement with a Huber kernel from the prior (PnP-RANSAC only if the prior leaves most matches outliers) -> a
+second, tighter projection search and refinement. Tracking a frame decides whether it becomes a keyframe
+(ORB-SLAM2's rules); a keyframe adds map points from its depth, culls bad recent points, fuses duplicates (points keep their most distinctive
 descriptor), runs local BA, and looks for a loop (bag of words, candidates consistent over consecutive
 keyframes, PnP verification, pose graph, point fusion). A lost frame tries
 relocalisation against the keyframes; failing that it is reported (warning) and, after a few failures, a new
@@ -51,6 +52,7 @@ from tambridge.frontend.orb.local_mapping import (
     local_bundle_adjustment,
 )
 from tambridge.frontend.orb.loop_closing import LoopConsistency, close_loop, detect_loop
+from tambridge.frontend.orb.depth_time import colour_from_depth_motion, depth_at_colour_time
 from tambridge.frontend.orb.dense_depth import DenseReference, DenseTerm, dense_reference, dense_samples
 from tambridge.frontend.orb.map_matching import PoseFix, localise, match_map_points, refine_with_matches
 from tambridge.frontend.orb.matching import build_keypoint_grid
@@ -178,6 +180,7 @@ class OrbFrontend:
             self._reference = self.map.keyframes[self._reference.parent]
         camera_from_world_last = self._camera_from_world_last()
         predicted = self._motion @ camera_from_world_last
+        frame, features = self._depth_at_colour_time(frame, features)
         grid = build_keypoint_grid(features.keypoints_px, self.camera.width, self.camera.height)
         radius_scale = 2.0 if self._lost_streak else 1.0
         fix, in_view = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m)
@@ -225,6 +228,20 @@ class OrbFrontend:
             relocalised=relocalised,
             keyframe=keyframe_event,
         )
+
+    def _depth_at_colour_time(self, frame: Frame, features: FrameFeatures) -> tuple[Frame, FrameFeatures]:
+        """The frame and its features with the depth moved to the colour time (``depth_time_compensation``) by the
+        motion prior, the camera's motion from the last frame to this one; as given where the depth has no time of
+        its own or the prior is still."""
+        delay_s, interval_s = frame.depth_delay_s, frame.timestamp_s - self._last.timestamp_s
+        if (not self.config.depth_time_compensation or delay_s == 0.0 or not interval_s > 0.0
+                or np.array_equal(self._motion, np.eye(4))):
+            return frame, features
+        with self._timed("features"):
+            colour_from_depth = colour_from_depth_motion(self._motion, interval_s, delay_s)
+            depth_m = depth_at_colour_time(frame.depth_m, self.K, colour_from_depth)
+            moved = self.extractor.lift(features.keypoints_px, features.octaves, features.descriptors, frame.rgb, depth_m)
+        return dataclasses.replace(frame, depth_m=depth_m, depth_timestamp_s=None), moved
 
     def _dense_term(self, depth_m: np.ndarray | None, matches: int) -> DenseTerm | None:
         """The point-to-plane depth term against the last keyframe's depth, where ``dense_depth`` asks for it
