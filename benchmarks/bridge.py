@@ -232,25 +232,30 @@ def main() -> None:
                              ([f"input.max_frames={max_frames}"] if max_frames else [])
                              + ([f"input.camera_file={camera}"] if camera else []))
         targets, sharpness_by_frame, has_gt = targets_of(folder, config)
+        result_key = key + (f"_{args.name}" if args.name else "")
         cases = {}
         for name, case_settings in cases_to_run.items():
-            if name == "off" and (args.reuse_off or (args.cases and name not in args.cases.split(","))):
+            if name == "off" and args.reuse_off:
                 cases[name] = results["sequences"][key]["cases"]["off"]
                 continue
             if args.cases and name not in args.cases.split(","):
                 continue
             print(f"{key}: bridge {name}", flush=True)
-            cases[name] = run_case(f"{key}{args.name and '_' + args.name}_{name}", folder,
+            cases[name] = run_case(f"{result_key}_{name}", folder,
                                    settings_of(sequence_settings) + case_settings + (args.set if name != "off" else []),
                                    max_frames, camera, targets, SYNTHETIC if name == "oracle" else None)
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-        results["sequences"][key + (f"_{args.name}" if args.name else "")] = {"folder": str(folder), "max_frames": max_frames, "commit": commit,
-                                     "scored_against": "gt_rgb" if has_gt else "inputs",
-                                     "cases": cases, "summary": summarise(cases, sharpness_by_frame)}
-    results["date"] = datetime.date.today().isoformat()
-    results["machine"] = platform.platform()
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(RESULTS, json.dumps(results, indent=1) + "\n")
+        # Read again: another run of this benchmark may have written meanwhile. Cases not run this time keep the
+        # entry's results.
+        results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"sequences": {}}
+        cases = results["sequences"].get(result_key, {}).get("cases", {}) | cases
+        results["sequences"][result_key] = {"folder": str(folder), "max_frames": max_frames, "commit": commit,
+                                            "scored_against": "gt_rgb" if has_gt else "inputs",
+                                            "cases": cases, "summary": summarise(cases, sharpness_by_frame)}
+        results["date"] = datetime.date.today().isoformat()
+        results["machine"] = platform.platform()
+        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(RESULTS, json.dumps(results, indent=1) + "\n")
     print_table(results)
 
 
