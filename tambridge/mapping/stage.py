@@ -207,9 +207,10 @@ class MappingStage:
         self._recent.append(Candidate(frame.index, np.asarray(result.world_from_camera, np.float64), score,
                                       result.inlier_count))
         del self._recent[: max(0, len(self._recent) - max(bridge.sharpness_median_frames, bridge.sharpest_window + 1))]
-        # The view of the frame before, mapped at constant velocity, now has its path through both neighbours.
+        # The view of the frame before, mapped at constant velocity (or without a path: the first frame), now has
+        # its path through both neighbours.
         for view in self.views[-2:]:
-            if view.frame_index == frame.index - 1 and view.exposure_path is not None:
+            if view.frame_index == frame.index - 1 and self.blur_exposure_s:
                 view.exposure_path = self.exposure_path_of(view.frame_index, self.tracked_pose(view))
 
     def view_frame(self, event: KeyframeEvent, selection: Selection, frame: Frame) -> tuple[Candidate, Selection]:
