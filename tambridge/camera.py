@@ -108,6 +108,16 @@ class Camera:
         x, y = pinhole_ray(pixels_px[..., 0], pixels_px[..., 1], self.fx, self.fy, self.cx, self.cy)
         return torch.stack([x * depth_m, y * depth_m, depth_m], dim=-1)
 
+    def image_motion_px(self, points_camera_m: np.ndarray, a_from_camera: np.ndarray, b_from_camera: np.ndarray) -> float:
+        """Largest distance, pixels, between the images of ``points_camera_m`` (N, 3, this camera's frame) seen by
+        this camera at pose a and at pose b (4x4 ``a_from_camera``, ``b_from_camera``); 0 without points. Points
+        behind either pose are projected at 1 mm depth."""
+        ends = []
+        for other_from_camera in (a_from_camera, b_from_camera):
+            points = points_camera_m @ other_from_camera[:3, :3].T + other_from_camera[:3, 3]
+            ends.append(self.project(points, np.maximum(points[:, 2], 1e-3)))
+        return float(np.max(np.linalg.norm(ends[1] - ends[0], axis=1), initial=0.0))
+
     def in_image(self, pixels_px):
         """Bool mask ``(...,)`` of pixels ``(..., 2)`` (numpy or torch) within the outermost pixel centres,
         ``0 <= u <= width - 1`` and ``0 <= v <= height - 1`` (NaN is outside)."""
@@ -142,7 +152,8 @@ class RgbdSensor:
     ``camera`` is the camera of the frames. With colour registered to depth (TUM, most drivers) it is the colour
     camera. A sensor whose colour is not registered gives ``colour_camera`` and ``colour_from_depth`` ((4, 4),
     depth-camera points into the colour camera's frame, metres): ``camera`` is then the depth camera, and colour is
-    resampled into it (:mod:`tambridge.io.registration`).
+    resampled into it (:mod:`tambridge.io.registration`). ``exposure_s``: the colour frames' exposure time, seconds,
+    where the camera file gives it (``tambridge synth`` writes it for its motion blur), else None (unknown).
     """
 
     camera: Camera
@@ -150,6 +161,7 @@ class RgbdSensor:
     depth_invalid: int | None = None
     colour_camera: Camera | None = None
     colour_from_depth: np.ndarray | None = None
+    exposure_s: float | None = None
 
 
 # TUM RGB-D calibration (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats), 640x480.
@@ -199,6 +211,7 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
             depth_invalid=None if invalid is None else int(float(invalid)),
             colour_camera=colour_camera,
             colour_from_depth=colour_from_depth,
+            exposure_s=None if values.get("exposure_s") is None else float(values["exposure_s"]),
         )
     except (TypeError, ValueError) as error:
         raise CameraConfigError(f"{source}: {error}; values must be numbers") from error
@@ -215,6 +228,8 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
                                     f"model takes {', '.join(map(str, DISTORTION_LENGTHS))}")
     if sensor.depth_scale <= 0:
         raise CameraConfigError(f"{source}: depth_scale must be positive")
+    if sensor.exposure_s is not None and sensor.exposure_s < 0:
+        raise CameraConfigError(f"{source}: exposure_s must be >= 0 (seconds)")
     return sensor
 
 

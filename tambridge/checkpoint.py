@@ -171,6 +171,7 @@ def state_types() -> StateTypes:
     # Imported here: the stages import the config, which imports this module.
     import open3d as o3d
 
+    from tambridge.bridge.blur import ExposurePath
     from tambridge.bridge.refinement import RefinementResult
     from tambridge.bridge.view import MappingView
     from tambridge.bridge.view_selection import Candidate, Selection
@@ -202,7 +203,7 @@ def state_types() -> StateTypes:
 
     return StateTypes(
         records=(Keyframe, FrameFeatures, MapPoints, SlamMap, KeyframeDatabase, LoopConsistency, _FrameRecord, DenseReference,
-                 Open3dKeyframe, PoseEdge, MappingView, RefinementResult, ViewImages, Candidate),
+                 Open3dKeyframe, PoseEdge, MappingView, RefinementResult, ViewImages, Candidate, ExposurePath),
         enums=(Selection,),
         codecs=(
             StateCodec(ViewExposure, ViewExposure.state_dict, ViewExposure.from_state_dict),

@@ -149,6 +149,19 @@ def interpolate_pose(pose_a: np.ndarray, pose_b: np.ndarray, fraction: float) ->
     return pose_a @ exp_se3(fraction * log_se3(inverse(pose_a) @ pose_b))
 
 
+def poses_along(times_s: np.ndarray, world_from_poses: np.ndarray, query_times_s: np.ndarray) -> np.ndarray:
+    """(Q, 4, 4) poses at ``query_times_s`` (Q,) on the path through ``world_from_poses`` (N, 4, 4), N >= 2, taken
+    at increasing ``times_s`` (N,): between two poses on their SE(3) geodesic at constant velocity
+    (:func:`interpolate_pose`), before the first and after the last on the end pair's geodesic continued at its
+    velocity (constant-velocity extrapolation)."""
+    times_s = np.asarray(times_s, np.float64)
+    assert len(times_s) >= 2 and np.all(np.diff(times_s) > 0), times_s
+    segments = np.clip(np.searchsorted(times_s, query_times_s, side="right") - 1, 0, len(times_s) - 2)
+    return np.stack([interpolate_pose(world_from_poses[i], world_from_poses[i + 1],
+                                      (time - times_s[i]) / (times_s[i + 1] - times_s[i]))
+                     for i, time in zip(segments, np.asarray(query_times_s, np.float64))])
+
+
 def exp_se3_torch(xi: "torch.Tensor") -> "torch.Tensor":
     """Differentiable twin of :func:`exp_se3` for a torch twist ``(rho, phi)`` (6,) -> (4, 4), same dtype/device.
 

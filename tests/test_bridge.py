@@ -284,3 +284,23 @@ def test_blur_aware_selection_beats_keyframe_only_selection_against_the_sharp_fr
         psnr_db[name] = float(np.mean(score_views(stage, stage.rendering_poses(sequence.ground_truth), [1, 4, 7, 10, 13]).psnr_db))
     # The bound lies 1 dB inside this run's gain (mapping is deterministic).
     assert psnr_db["sharpest"] > psnr_db["keyframes"] + 1.8, psnr_db
+
+
+def test_each_view_gets_its_exposure_path_from_the_tracked_neighbours_and_keeps_it_refined(synthetic_sequence_dir,
+                                                                                            tmp_path):
+    """Views at frames 0 and 4: mapped with the previous frame only (frame 0: none), then through both neighbours
+    once the next frame is tracked; the path's samples are the neighbours' poses relative to the view's frame."""
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=6)
+    poses, times = sequence.ground_truth.world_from_camera, sequence.timestamps_s
+    bridge = BridgeConfig(sharpest_window=0, blur_exposure_s=0.03)
+    stage = map_with_blurred_keyframes(sequence, tmp_path, bridge, [0, 4], set())
+    first, last = stage.views
+    np.testing.assert_allclose(first.exposure_path.times_s, [0.0, times[1] - times[0]])
+    np.testing.assert_allclose(last.exposure_path.times_s, [times[3] - times[4], 0.0])
+    np.testing.assert_allclose(last.exposure_path.frame_from_tracked[0], inverse(poses[4]) @ poses[3], atol=1e-12)
+    stage.on_tracked(TrackResult(5, 0.0, poses[5], True, False, 60), sequence[5])
+    np.testing.assert_allclose(last.exposure_path.times_s, [times[3] - times[4], 0.0, times[5] - times[4]])
+    np.testing.assert_allclose(last.exposure_path.frame_from_tracked[2], inverse(poses[4]) @ poses[5], atol=1e-12)
+    assert last.exposure_path.exposure_s == 0.03
+    off = map_with_blurred_keyframes(sequence, tmp_path / "off", BridgeConfig(sharpest_window=0), [0, 4], set())
+    assert all(view.exposure_path is None for view in off.views)  # the synthetic fixture has no exposure_s

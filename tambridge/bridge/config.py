@@ -48,5 +48,13 @@ class BridgeConfig:
                                                 "0: never skipped)", NON_NEGATIVE)
     sharpness_weighted_colour: bool = setting(False, "scale the colour term by the view's sharpness over the recent "
                                                     "median (at most 1): a blurred view pulls its pose less by colour")
+    blur_exposure_s: float | None = setting(None, "exposure time of the colour frames (s) for blur-aware mapping: the "
+                                                  "mapper renders each view as the mean over the camera's tracked motion "
+                                                  "during it (null: the camera file's exposure_s, which tambridge synth "
+                                                  "writes, else 0; 0: off)", NON_NEGATIVE)
+    blur_step_px: float = setting(1.0, "a blurred view's sub-poses lie at most this far apart in image motion at the "
+                                       "rendering resolution (px; motion under it: one sharp render)", POSITIVE)
+    blur_max_subposes: int = setting(9, "renders per blurred view at most (odd counts keep the view's own pose among "
+                                        "them)", at_least(1))
     min_gated_fraction: float = setting(0.05, "below this share of gated pixels (and with no matched points) the "
                                               "frontend pose is kept", UNIT)

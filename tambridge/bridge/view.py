@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 
+from tambridge.bridge.blur import ExposurePath
 from tambridge.bridge.refinement import RefinementResult
 from tambridge.bridge.view_selection import Selection
 from tambridge.gaussians.mapper import ViewExposure
@@ -18,7 +19,9 @@ class MappingView:
     tracked offset ``keyframe_from_frame`` (identity for the keyframe's own frame) times the bridge's pose
     correction; ``exposure`` its colour transform (None: the mapper does not compensate exposure); ``unexplained``
     the share of its depth pixels the map left unexplained once it was mapped
-    (:meth:`GaussianMap.unexplained_fraction`); ``sharpness`` the frame's :func:`tambridge.images.sharpness`."""
+    (:meth:`GaussianMap.unexplained_fraction`); ``sharpness`` the frame's :func:`tambridge.images.sharpness`;
+    ``exposure_path`` the camera's motion over the frame's exposure (None: rendered sharp), see
+    :mod:`tambridge.bridge.blur`."""
 
     keyframe_id: int
     frame_index: int
@@ -29,3 +32,4 @@ class MappingView:
     unexplained: float = 0.0
     keyframe_from_frame: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
     sharpness: float = float("nan")
+    exposure_path: ExposurePath | None = None

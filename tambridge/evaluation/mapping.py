@@ -98,6 +98,7 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
         exported_scores = score_exported(exported, sequence, novel, (view_frames[0], view_frames[-1]) if view_frames else (0, 0),
                                          mapping.mapper_config)
     refinements = [view.refinement for view in mapping.views if view.refinement is not None and not view.refinement.skipped]
+    blurred = [count for count in mapping.subposes.values() if count > 1]
     logger.info("rendering: novel views %.2f dB PSNR, %.3f SSIM (%d frames); mapping views %.2f dB, %.3f SSIM (%d); %d Gaussians",
                 novel_scores.psnr_db or float("nan"), novel_scores.ssim or float("nan"), len(novel),
                 view_scores.psnr_db or float("nan"), view_scores.ssim or float("nan"), len(view_frames), len(mapping.map))
@@ -135,6 +136,9 @@ def mapping_metrics(mapping: MappingStage, tracking: FrontendResult, sequence: R
             mean_loss_initial=float(np.mean([r.loss_initial for r in refinements])) if refinements else None,
             mean_loss_final=float(np.mean([r.loss_final for r in refinements])) if refinements else None,
             views_ate_rmse_m=views_ate,
+            blur_exposure_s=mapping.blur_exposure_s,
+            blurred_views=len(blurred),
+            mean_subposes_blurred=float(np.mean(blurred)) if blurred else None,
         ),
     )
 

@@ -110,13 +110,18 @@ class ViewPoseErrors:
 @dataclasses.dataclass(kw_only=True)
 class BridgeMetrics:
     """The Fusion Bridge: view selections by outcome name, views refined, their mean joint loss before and after
-    refinement (None when none was refined); ``views_ate_rmse_m`` only with ground truth and 3 views or more."""
+    refinement (None when none was refined); ``views_ate_rmse_m`` only with ground truth and 3 views or more;
+    blur-aware mapping's exposure time (s, 0: off), the views rendered at more than one pose over their exposure
+    at the mapping resolution and their mean count of poses (None when none)."""
 
     enabled: bool
     view_selection: dict[str, int]
     refined_views: int
     mean_loss_initial: float | None
     mean_loss_final: float | None
+    blur_exposure_s: float = 0.0
+    blurred_views: int = 0
+    mean_subposes_blurred: float | None = None
     views_ate_rmse_m: ViewPoseErrors | None = dataclasses.field(default=None, metadata=OMITTED_WHEN_NONE)
 
 

@@ -68,6 +68,21 @@ def surface_depth_m(depth_m: torch.Tensor, silhouette: torch.Tensor) -> torch.Te
     return torch.where(covered, depth_m / silhouette.clamp(min=SILHOUETTE_FLOOR), torch.zeros_like(depth_m))
 
 
+def render_exposure(gaussians: GaussianTensors, camera: Camera, world_from_camera: np.ndarray,
+                    backend: str = "auto") -> RenderOutput:
+    """A view rendered as its camera recorded it. ``world_from_camera`` (4, 4): one render. (K, 4, 4), K odd: the
+    poses over the view's exposure (:mod:`tambridge.bridge.blur`); colour is the mean of the K renders (motion
+    blur: a sensor integrates the light over the exposure), depth and silhouette are the middle pose's, the
+    frame's own (a depth camera's exposure is short: its depth is sharp at the frame's time)."""
+    poses = np.asarray(world_from_camera, np.float64)
+    if poses.ndim == 2:
+        return render(gaussians, camera, poses, backend=backend)
+    middle = len(poses) // 2
+    renders = [render(gaussians, camera, pose, backend=backend) for pose in poses]
+    rgb = torch.stack([output.rgb for output in renders]).mean(dim=0)
+    return RenderOutput(rgb, renders[middle].depth_m, renders[middle].silhouette)
+
+
 def densify_mask(observed_depth_m: torch.Tensor, rendered: RenderOutput, silhouette_threshold: float, depth_factor: float) -> torch.Tensor:
     """(H, W) bool: pixels with valid depth that the map does not explain yet.
 
@@ -287,17 +302,19 @@ class GaussianMap:
         return self._add_pixels(anchor_id, camera, images, mask, exposure)
 
     def densify_colour_error(self, anchor_id: int, camera: Camera, images: ViewImages, exposure: ViewExposure | None,
-                             threshold: float, fraction: float) -> int:
+                             threshold: float, fraction: float, world_from_subposes: np.ndarray | None = None) -> int:
         """Add a one-pixel Gaussian (as :meth:`densify`) at the pixels whose colour error is worst: the map rendered
         at the view's pose (through ``exposure``) against ``images``, mean absolute error over the channels above
         ``threshold``, at most ``fraction`` of the view's pixels, only where depth is valid and the colour has data.
         At a finer ``camera`` than the mapping one, this adds detail that the map's coarser Gaussians blur.
-        Returns how many were added."""
+        ``world_from_subposes`` (K, 4, 4): a blurred view's poses over its exposure, the map rendered blurred as
+        the frame is (:func:`render_exposure`). Returns how many were added."""
         if not len(self) or threshold <= 0 or fraction <= 0:
             return 0
         with torch.no_grad():
             world_from_camera = self._world_from_anchor[self._anchor_ids.index(anchor_id)].cpu().numpy()
-            rendered = self.render(camera, world_from_camera).rgb
+            rendered = render_exposure(self.gaussians(), camera, world_from_camera if world_from_subposes is None
+                                       else world_from_subposes, backend=self.config.backend).rgb
             if exposure is not None:
                 rendered = exposure.apply(rendered)
             error = (rendered.clamp(0.0, 1.0) - images.rgb).abs().mean(dim=2)
@@ -356,7 +373,8 @@ class GaussianMap:
                  exposures: Sequence[ViewExposure | None] | None = None) -> list[float]:
         """Adam steps of the map loss with the poses fixed: step k renders ``views[schedule[k]]``; returns the losses.
 
-        ``views`` are ``(world_from_camera (4, 4), images)`` pairs at ``camera``'s resolution. Only the Gaussians
+        ``views`` are ``(world_from_camera, images)`` pairs at ``camera``'s resolution, the pose (4, 4) or a
+        blurred view's poses over its exposure (K, 4, 4), rendered by :func:`render_exposure`. Only the Gaussians
         that can touch one of the views take part: they are gathered once into contiguous tensors with their Adam
         state, stepped, and scattered back, so the cost follows the views, not the size of the map. A Gaussian
         that gets no gradient in a step (outside that step's view) does not move and its Adam state is unchanged.
@@ -365,7 +383,8 @@ class GaussianMap:
         """
         if not schedule or len(self) == 0:
             return []
-        rows = torch.unique(torch.cat([self.visible_rows(camera, pose) for pose, _ in views]))
+        rows = torch.unique(torch.cat([self.visible_rows(camera, pose) for poses, _ in views
+                                       for pose in np.asarray(poses).reshape(-1, 4, 4)]))
         params = {name: value[rows].clone() for name, value in self._params.items()}
         exp_avg = {name: value[rows].clone() for name, value in self._exp_avg.items()}
         exp_avg_sq = {name: value[rows].clone() for name, value in self._exp_avg_sq.items()}
@@ -378,7 +397,7 @@ class GaussianMap:
             leaves = {name: value.requires_grad_(True) for name, value in params.items()}
             means_world = torch.einsum("nij,nj->ni", rotations, leaves["means_anchor_m"]) + translations
             gaussians = GaussianTensors(means_world, leaves["rgb"], leaves["log_radii_m"], leaves["opacity_logits"])
-            rendered = render(gaussians, camera, world_from_camera, backend=self.config.backend)
+            rendered = render_exposure(gaussians, camera, world_from_camera, backend=self.config.backend)
             exposure = exposures[view_index] if exposures is not None else None
             rendered_rgb = rendered.rgb if exposure is None else exposure.apply(rendered.rgb)
             observed_rgb = images.rgb

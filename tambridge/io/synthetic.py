@@ -21,7 +21,7 @@ import yaml
 from tambridge.camera import Camera
 from tambridge.errors import ConfigError
 from tambridge.files import atomic_path, atomic_write_text
-from tambridge.geometry import inverse, look_at, transform_points
+from tambridge.geometry import inverse, look_at
 from tambridge.io.tum import GT_RGB_FOLDER, MAX_ASSOCIATION_DIFFERENCE_S, read_file_list
 from tambridge.trajectory import Trajectory, format_tum_trajectory
 
@@ -331,12 +331,9 @@ def blur_subframe_count(camera: Camera, depth_m: np.ndarray, world_from_camera: 
     rows, columns = np.mgrid[0 : camera.height : 4, 0 : camera.width : 4]
     depth = depth_m[rows, columns]
     pixels = np.stack([columns, rows], axis=-1)[depth > 0].astype(np.float64)
-    points_world = transform_points(world_from_camera, camera.backproject(pixels, depth[depth > 0].astype(np.float64)))
-    ends = []
-    for world_from_pose in (world_from_start, world_from_end):
-        points = transform_points(inverse(world_from_pose), points_world)
-        ends.append(camera.project(points, np.maximum(points[:, 2], 1e-3)))
-    motion_px = float(np.max(np.linalg.norm(ends[1] - ends[0], axis=1), initial=0.0))
+    points_camera = camera.backproject(pixels, depth[depth > 0].astype(np.float64))
+    motion_px = camera.image_motion_px(points_camera, inverse(world_from_start) @ world_from_camera,
+                                       inverse(world_from_end) @ world_from_camera)
     return int(np.clip(np.ceil(motion_px / BLUR_STEP_PX), 2, MAX_BLUR_SUBFRAMES))
 
 
@@ -480,6 +477,8 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
     atomic_write_text(folder / "groundtruth.txt", format_tum_trajectory(trajectory))
     camera_values = {field: getattr(camera, field) for field in ("width", "height", "fx", "fy", "cx", "cy")}
     camera_values.update(depth_scale=SYNTHETIC_DEPTH_SCALE, distortion=[0.0] * 5)
+    if options.blurred:
+        camera_values["exposure_s"] = options.exposure_s
     if not options.registered:
         camera_values.update({f"colour_{field}": getattr(colour_camera, field) for field in ("fx", "fy", "cx", "cy")})
         camera_values["colour_from_depth"] = options.colour_from_depth().tolist()

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 import torch
 
+from tambridge.bridge.blur import ExposurePath, exposure_path, subpose_count
 from tambridge.bridge.refinement import refine_render_pose
 from tambridge.bridge.view import MappingView
 from tambridge.bridge.view_selection import SHARPER_FRAME, Candidate, Selection, select_view, sharpest_candidate, too_blurred
@@ -103,6 +104,12 @@ class MappingStage:
         self._frames_since_keyframe = 0
         # The latest tracked frames, oldest first (sharpness_median_frames of them, at least the window's).
         self._recent: list[Candidate] = []
+        self.blur_exposure_s = blur_exposure_s(bridge_config, sequence)
+        # Each view's latest count of renders over its exposure at the mapping resolution (for the metrics).
+        self.subposes: dict[int, int] = {}
+        logger.info("blur-aware mapping: exposure %.4g s (%s)", self.blur_exposure_s,
+                    "off" if not self.blur_exposure_s else "bridge.blur_exposure_s" if bridge_config.blur_exposure_s
+                    is not None else "the camera file's exposure_s")
 
     def threads(self) -> contextlib.AbstractContextManager:
         return compute_threads(TORCH_THREADS, self.mapper_config.kernel_threads)
@@ -112,6 +119,26 @@ class MappingStage:
     def view_pose(self, view: MappingView) -> np.ndarray:
         """Current 4x4 ``world_from_camera`` of a mapping view: its keyframe's pose times the bridge correction."""
         return self.keyframe_poses[view.keyframe_id] @ view.keyframe_from_view
+
+    def view_poses(self, view: MappingView, camera, depth_m: torch.Tensor) -> np.ndarray:
+        """The poses the mapper renders a view at, by ``camera`` (``depth_m`` (H, W) the view's depth at its
+        resolution): :meth:`view_pose` (4, 4), or (K, 4, 4) along its exposure path where the image moves
+        ``bridge.blur_step_px`` or more over the exposure (:func:`subpose_count`)."""
+        pose = self.view_pose(view)
+        count = subpose_count(view.exposure_path, camera, depth_m.cpu().numpy(), self.bridge_config.blur_step_px,
+                              self.bridge_config.blur_max_subposes)
+        if camera == self.camera:
+            self.subposes[view.frame_index] = count
+        return pose if count == 1 else pose @ view.exposure_path.poses(count)
+
+    def exposure_path_of(self, frame_index: int, world_from_frame: np.ndarray) -> ExposurePath | None:
+        """The exposure path of a frame tracked at ``world_from_frame``, through the tracked frames just before and
+        after it that the bridge holds (:func:`exposure_path`); None with blur modelling off."""
+        timestamps = self.sequence.timestamps_s
+        neighbours = [(float(timestamps[candidate.frame_index]), candidate.world_from_camera) for candidate in self._recent
+                      if abs(candidate.frame_index - frame_index) == 1]
+        return exposure_path(np.asarray(world_from_frame, np.float64), float(timestamps[frame_index]), neighbours,
+                             self.blur_exposure_s)
 
     def new_exposure(self) -> ViewExposure | None:
         """The exposure of a new view, pulled to the identity by ``mapper.exposure_prior`` (see
@@ -180,6 +207,11 @@ class MappingStage:
         self._recent.append(Candidate(frame.index, np.asarray(result.world_from_camera, np.float64), score,
                                       result.inlier_count))
         del self._recent[: max(0, len(self._recent) - max(bridge.sharpness_median_frames, bridge.sharpest_window + 1))]
+        # The view of the frame before, mapped at constant velocity (or without a path: the first frame), now has
+        # its path through both neighbours.
+        for view in self.views[-2:]:
+            if view.frame_index == frame.index - 1 and self.blur_exposure_s:
+                view.exposure_path = self.exposure_path_of(view.frame_index, self.tracked_pose(view))
 
     def view_frame(self, event: KeyframeEvent, selection: Selection, frame: Frame) -> tuple[Candidate, Selection]:
         """The frame to map for a keyframe eq. 3 selected, and its final selection: the sharpest candidate of its
@@ -263,9 +295,16 @@ class MappingStage:
                              1e3 * np.linalg.norm(refinement.world_from_camera[:3, 3] - frame_pose[:3, 3]),
                              " (skipped)" if refinement.skipped else "")
         view = MappingView(event.keyframe_id, chosen.frame_index, keyframe_from_view, selection, refinement, exposure,
-                           keyframe_from_frame=keyframe_from_frame, sharpness=chosen.sharpness)
+                           keyframe_from_frame=keyframe_from_frame, sharpness=chosen.sharpness,
+                           exposure_path=self.exposure_path_of(chosen.frame_index, chosen.world_from_camera))
         with self.run_log.stage("mapping"):
             self.map_view(view, images)
+
+    def tracked_pose(self, view: MappingView) -> np.ndarray:
+        """4x4 tracked ``world_from_camera`` of a view's frame among the bridge's recent frames (its keyframe's
+        pose times the tracked offset where it has dropped out of them)."""
+        tracked = [candidate.world_from_camera for candidate in self._recent if candidate.frame_index == view.frame_index]
+        return tracked[0] if tracked else self.keyframe_poses[view.keyframe_id] @ view.keyframe_from_frame
 
     def colour_weight(self, chosen: Candidate) -> float:
         """Scale of the refinement's colour term for a view: its sharpness over the recent median, at most 1."""
@@ -311,7 +350,7 @@ class MappingStage:
         added = self.map.densify(view.keyframe_id, self.camera, images, rendered, view.exposure)
         window = self.overlapping_views(world_from_camera, images)
         self.views.append(view)
-        views = [(world_from_camera, images)] + [(self.view_pose(v), self.images(v.frame_index)) for v in window]
+        views = [self.posed_images(v, self.images(v.frame_index) if v is not view else images) for v in [view] + window]
         # Every other step on the new view, the others cycle through the earlier overlapping ones.
         schedule = [0 if k % 2 == 0 or not window else 1 + (k // 2) % len(window) for k in range(self.mapper_config.iterations)]
         losses = self.map.optimise(self.camera, views, schedule, self.exposures([view] + window))
@@ -320,9 +359,14 @@ class MappingStage:
         if self.mapper_config.coverage_unexplained:
             view.unexplained = self.map.unexplained_fraction(self.camera, world_from_camera, images.depth_m)
         own = [loss for loss, index in zip(losses, schedule) if index == 0] or [float("nan")]
-        logger.info("view %d (frame %d, %s): +%d -%d Gaussians -> %d, window %s, its loss %.4f -> %.4f", len(self.views) - 1,
-                    view.frame_index, view.selection.value, added, removed, len(self.map),
-                    [v.frame_index for v in window], own[0], own[-1])
+        logger.info("view %d (frame %d, %s): +%d -%d Gaussians -> %d, window %s, its loss %.4f -> %.4f, %d render(s) "
+                    "over its exposure", len(self.views) - 1, view.frame_index, view.selection.value, added, removed,
+                    len(self.map), [v.frame_index for v in window], own[0], own[-1], self.subposes.get(view.frame_index, 1))
+
+    def posed_images(self, view: MappingView, images: ViewImages, camera=None) -> tuple[np.ndarray, ViewImages]:
+        """``(poses, images)`` of a view for :meth:`GaussianMap.optimise`: :meth:`view_poses` by ``camera`` (None:
+        the mapping camera) at ``images``' resolution."""
+        return self.view_poses(view, self.camera if camera is None else camera, images.depth_m), images
 
     def overlapping_views(self, world_from_camera: np.ndarray, images: ViewImages) -> list[MappingView]:
         """The ``window_size - 1`` earlier views that see the most of this view's points (at least one point)."""
@@ -350,7 +394,7 @@ class MappingStage:
         with self.run_log.stage("final_refinement"), self.threads():
             self.update_keyframe_poses(keyframe_poses)
             for chunk in self.view_chunks():
-                views = [(self.view_pose(v), self.images(v.frame_index)) for v in chunk]
+                views = [self.posed_images(v, self.images(v.frame_index)) for v in chunk]
                 self.map.optimise(self.camera, views, list(range(len(chunk))) * self.mapper_config.final_iterations_per_view,
                                   self.exposures(chunk))
         if self.mapper_config.sharp_iterations_per_view:
@@ -381,9 +425,11 @@ class MappingStage:
             for view in chunk:
                 images = resize_frame(self.sequence[view.frame_index], config.sharp_resolution_scale, self.device,
                                       self.sequence.valid_region)
+                posed = self.posed_images(view, images, camera)
                 added += self.map.densify_colour_error(view.keyframe_id, camera, images, view.exposure,
-                                                       config.sharp_densify_error, config.sharp_densify_fraction)
-                views.append((self.view_pose(view), images))
+                                                       config.sharp_densify_error, config.sharp_densify_fraction,
+                                                       posed[0] if posed[0].ndim == 3 else None)
+                views.append(posed)
             self.map.optimise(camera, views, list(range(len(chunk))) * config.sharp_iterations_per_view,
                               self.exposures(chunk))
         logger.info("sharpening at %dx%d: %d steps per view over %d views, +%d Gaussians -> %d", camera.width,
@@ -424,6 +470,16 @@ class MappingStage:
         state = dict(state)
         self.map.load_state_dict(state.pop("map"))
         restore_attributes(self, _stage_tensors_to(state, self.device))
+
+
+def blur_exposure_s(bridge: BridgeConfig, sequence: RgbdSequence) -> float:
+    """The exposure time (s) blur-aware mapping integrates over: ``bridge.blur_exposure_s``, else the sequence's
+    camera file's ``exposure_s``, else 0 (off); 0 with the bridge off."""
+    if not bridge.enabled:
+        return 0.0
+    if bridge.blur_exposure_s is not None:
+        return bridge.blur_exposure_s
+    return sequence.sensor.exposure_s or 0.0
 
 
 def _stage_tensors_to(state: dict, device: torch.device) -> dict:
