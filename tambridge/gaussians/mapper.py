@@ -221,12 +221,13 @@ class GaussianMap:
         return GaussianTensors(means_world, params["rgb"], params["log_radii_m"], params["opacity_logits"])
 
     def visible_rows(self, camera: Camera, world_from_camera: np.ndarray) -> torch.Tensor:
-        """(M,) long indices of the Gaussians whose 3-sigma disc can touch the image of ``camera`` at this pose."""
+        """(M,) long indices of the Gaussians whose bounding disc (of the 3-sigma ellipse) can touch the image of
+        ``camera`` at this pose: exactly those the CPU kernel bins."""
         with torch.no_grad():
             gaussians = self.gaussians()
             means_camera = camera_frame_means(gaussians, torch.as_tensor(np.asarray(world_from_camera, np.float64)))
             screen = project_to_screen(gaussians, means_camera, camera)
-            reach = SIGMA_CUTOFF * screen.radii_px
+            reach = screen.bounds_px
             u, v = screen.means_px[:, 0], screen.means_px[:, 1]
             inside = (
                 (screen.depths_m > NEAR_PLANE_M)
@@ -334,16 +335,19 @@ class GaussianMap:
         return int(mask.sum()) / valid
 
     def prune(self, camera: Camera, world_from_camera: np.ndarray) -> int:
-        """Remove Gaussians of opacity below ``tau`` and those bigger than ``prune_radius_px`` pixels in this view.
+        """Remove Gaussians of opacity below ``tau`` and those bigger than ``prune_radius_px`` pixels in this view
+        (the standard deviation of the footprint's long axis; any Gaussian in front of the camera within the near
+        plane counts as bigger).
 
         Returns how many were removed.
         """
         with torch.no_grad():
             opacity = torch.sigmoid(self._params["opacity_logits"])
-            means_camera = camera_frame_means(self.gaussians(), torch.as_tensor(np.asarray(world_from_camera, np.float64)))
-            depth = means_camera[:, 2].clamp(min=1e-3)
-            radius_px = camera.mean_focal_px * torch.exp(self._params["log_radii_m"]) / depth
-            oversized = (means_camera[:, 2] > 0) & (radius_px > self.config.prune_radius_px)
+            gaussians = self.gaussians()
+            means_camera = camera_frame_means(gaussians, torch.as_tensor(np.asarray(world_from_camera, np.float64)))
+            sigma_px = project_to_screen(gaussians, means_camera, camera).bounds_px / SIGMA_CUTOFF
+            depth = means_camera[:, 2]
+            oversized = (depth > 0) & ((depth <= NEAR_PLANE_M) | (sigma_px > self.config.prune_radius_px))
             kept = (opacity >= self.config.tau) & ~oversized
         removed = len(self) - int(kept.sum())
         if removed:
