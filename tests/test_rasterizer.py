@@ -121,8 +121,8 @@ def test_projection_kernel_matches_torch_projection(dtype):
     np.testing.assert_array_equal(packed[:, k.U : k.V + 1], screen.means_px.numpy())
     np.testing.assert_array_equal(packed[:, k.RED : k.RED + 3], screen.rgb.numpy())
     eps = torch.finfo(dtype).eps
-    np.testing.assert_allclose(packed[:, k.CONIC_A : k.CONIC_C + 1], screen.conics_px.numpy(), rtol=8 * eps, atol=0)
-    np.testing.assert_allclose(packed[:, k.BOUND], screen.bounds_px.numpy(), rtol=8 * eps, atol=0)
+    np.testing.assert_allclose(packed[:, k.CONIC_A : k.CONIC_C + 1], screen.conics_px.numpy(), rtol=4 * eps, atol=0)
+    np.testing.assert_allclose(packed[:, k.BOUND], screen.bounds_px.numpy(), rtol=4 * eps, atol=0)
     np.testing.assert_allclose(packed[:, k.OPACITY], screen.opacity.numpy(), rtol=4 * eps, atol=0)
 
 
