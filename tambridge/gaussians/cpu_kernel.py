@@ -379,8 +379,9 @@ def _footprint(row, x0, y0):
 
     The one place, with :func:`_row_span`, :func:`_row_start` and :func:`_next_row`, where the forward and backward
     passes evaluate a Gaussian's shape, so both see bit-identical alphas, which the backward's recovery
-    ``T_i = T_{i+1} / (1 - alpha_i)`` relies on. The recurrences multiply factors of at most exp(SIGMA_CUTOFF^2)
-    times the conic's condition number (bounded by the Jacobian clamp), far from float64's range.
+    ``T_i = T_{i+1} / (1 - alpha_i)`` relies on. Every falloff in the box (its corners are the smallest) is at least
+    ``exp(-SIGMA_CUTOFF^2 kappa)``, kappa the 2D covariance's condition number (the Jacobian clamp bounds it), so
+    the recurrences stay far from float64's underflow.
     """
     a, b, c = np.float64(row[CONIC_A]), np.float64(row[CONIC_B]), np.float64(row[CONIC_C])
     offset_x, offset_y = x0 - np.float64(row[U]), y0 - np.float64(row[V])
