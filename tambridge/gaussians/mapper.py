@@ -24,7 +24,6 @@ from tambridge.state import attribute_state, restore_attributes
 from tambridge.gaussians.losses import map_loss
 from tambridge.gaussians.model import (
     NEAR_PLANE_M,
-    SIGMA_CUTOFF,
     GaussianTensors,
     RenderOutput,
     camera_frame_means,
@@ -336,18 +335,18 @@ class GaussianMap:
 
     def prune(self, camera: Camera, world_from_camera: np.ndarray) -> int:
         """Remove Gaussians of opacity below ``tau`` and those bigger than ``prune_radius_px`` pixels in this view
-        (the standard deviation of the footprint's long axis; any Gaussian in front of the camera within the near
-        plane counts as bigger).
+        (radius ``f r / z``).
 
         Returns how many were removed.
         """
         with torch.no_grad():
             opacity = torch.sigmoid(self._params["opacity_logits"])
-            gaussians = self.gaussians()
-            means_camera = camera_frame_means(gaussians, torch.as_tensor(np.asarray(world_from_camera, np.float64)))
-            sigma_px = project_to_screen(gaussians, means_camera, camera).bounds_px / SIGMA_CUTOFF
-            depth = means_camera[:, 2]
-            oversized = (depth > 0) & ((depth <= NEAR_PLANE_M) | (sigma_px > self.config.prune_radius_px))
+            means_camera = camera_frame_means(self.gaussians(), torch.as_tensor(np.asarray(world_from_camera, np.float64)))
+            depth = means_camera[:, 2].clamp(min=1e-3)
+            # The Gaussian's own size in pixels, f r / z, not its footprint's long axis (up to ~1.25x larger off
+            # axis): on 7-Scenes 0-699 the long axis pruned splats the map needed (docs/benchmarks.md).
+            radius_px = camera.mean_focal_px * torch.exp(self._params["log_radii_m"]) / depth
+            oversized = (means_camera[:, 2] > 0) & (radius_px > self.config.prune_radius_px)
             kept = (opacity >= self.config.tau) & ~oversized
         removed = len(self) - int(kept.sum())
         if removed:
