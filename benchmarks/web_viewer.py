@@ -6,8 +6,8 @@ For each run: the viewer opens from file:// in headless Chromium (WebGL on Swift
 implementation) in a window of the camera's size, at the pose it starts at (the first of trajectory.txt); its
 canvas's screenshot is compared with tambridge.gaussians.rasterizer's render of splats.ply, loaded back from the
 file, at that pose over the same black background (no per-view exposure: the map as exported). Prints PSNR and SSIM
-per run, and PSNR in the image's central half (where the viewer's EWA footprint of an isotropic Gaussian is nearly
-the rasteriser's circle), and writes benchmarks/results/web_viewer.json. tests/test_web_viewer.py uses the same functions.
+per run, and PSNR in the image's central half (both draw the EWA footprint; before the rasteriser did too, its
+circle of radius f r / z matched the viewer's ellipse only there), and writes benchmarks/results/web_viewer.json. tests/test_web_viewer.py uses the same functions.
 """
 
 from __future__ import annotations

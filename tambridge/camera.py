@@ -73,7 +73,8 @@ class Camera:
 
     @property
     def mean_focal_px(self) -> float:
-        """``(fx + fy) / 2``, pixels: the one focal length of isotropic footprints (a splat's radius ``f r / z``)."""
+        """``(fx + fy) / 2``, pixels: the one focal length where one number is wanted (a new Gaussian's radius of one
+        pixel, ``r = z / f``; the mapper's pruning size ``f r / z``)."""
         return 0.5 * (self.fx + self.fy)
 
     def project(self, points_camera_m: np.ndarray, depth_m: np.ndarray | None = None) -> np.ndarray:

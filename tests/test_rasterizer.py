@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -9,7 +11,7 @@ import torch
 from tambridge.camera import Camera
 from tambridge.geometry import exp_se3, look_at
 from tambridge.gaussians import GaussianTensors, ScreenGaussians, cpu_kernel, render
-from tambridge.gaussians.model import camera_frame_means, camera_from_world_tensor, project_to_screen
+from tambridge.gaussians.model import camera_frame_means, camera_from_world_tensor, jacobian_limits, project_to_screen
 from tambridge.gaussians.rasterizer import composite_cpu
 from tambridge.gaussians.reference import composite_reference
 
@@ -104,7 +106,7 @@ def test_untracked_render_matches_reference_and_tracked_render(count, width, hei
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_projection_kernel_matches_torch_projection(dtype):
     """cpu_kernel.project repeats torch's arithmetic: depths and means bit-identical (so the depth order, ties
-    included, is the same), radius and opacity within a few ulp (libm's exp instead of torch's)."""
+    included, is the same), conic, bound and opacity within a few ulp (libm's exp and sqrt instead of torch's)."""
     camera = camera_of(70, 45)
     world_from_camera = look_at(np.array([0.1, -0.2, -0.3]), np.array([0.0, 0.0, 2.0]), up=np.array([0.0, -1.0, 0.0]))
     gaussians = random_gaussians(5000, seed=21, dtype=dtype)
@@ -119,7 +121,8 @@ def test_projection_kernel_matches_torch_projection(dtype):
     np.testing.assert_array_equal(packed[:, k.U : k.V + 1], screen.means_px.numpy())
     np.testing.assert_array_equal(packed[:, k.RED : k.RED + 3], screen.rgb.numpy())
     eps = torch.finfo(dtype).eps
-    np.testing.assert_allclose(packed[:, k.RADIUS], screen.radii_px.numpy(), rtol=4 * eps, atol=0)
+    np.testing.assert_allclose(packed[:, k.CONIC_A : k.CONIC_C + 1], screen.conics_px.numpy(), rtol=4 * eps, atol=0)
+    np.testing.assert_allclose(packed[:, k.BOUND], screen.bounds_px.numpy(), rtol=4 * eps, atol=0)
     np.testing.assert_allclose(packed[:, k.OPACITY], screen.opacity.numpy(), rtol=4 * eps, atol=0)
 
 
@@ -148,7 +151,8 @@ def test_gradients_match_finite_differences(backend):
 
 
 def test_single_gaussian_known_answer():
-    """A Gaussian whose mean projects onto a pixel centre gives o*c + (1-o)*bg, o*z and o there."""
+    """A Gaussian whose mean projects onto a pixel centre gives o*c + (1-o)*bg, o*z and o there; around it, the
+    EWA ellipse of an off-axis mean (closed form of J r^2 I J^T for fx == fy)."""
     camera = Camera(32, 24, fx=30.0, fy=30.0, cx=15.5, cy=11.5)
     depth_m, opacity = 2.0, 0.6
     pixel = (20, 5)  # (u, v)
@@ -165,10 +169,55 @@ def test_single_gaussian_known_answer():
     torch.testing.assert_close(out.rgb[pixel[1], pixel[0]], expected_rgb, atol=1e-5, rtol=0)
     assert out.depth_m[pixel[1], pixel[0]].item() == pytest.approx(opacity * depth_m, abs=1e-5)
     assert out.silhouette[pixel[1], pixel[0]].item() == pytest.approx(opacity, abs=1e-6)
-    # One pixel along the row: exp(-1/8) falloff; beyond 3 radii (6 px): nothing.
-    assert out.silhouette[pixel[1], pixel[0] + 1].item() == pytest.approx(opacity * np.exp(-1 / 8), abs=1e-6)
+    # Sigma2D = (2 px)^2 [[1 + xn^2, xn yn], [xn yn, 1 + yn^2]]; its inverse [[a, b], [b, c]]:
+    xn, yn = (pixel[0] - camera.cx) / camera.fx, (pixel[1] - camera.cy) / camera.fy
+    spread = 4.0 * (1 + xn**2 + yn**2)
+    a, b, c = (1 + yn**2) / spread, -xn * yn / spread, (1 + xn**2) / spread
+    assert out.silhouette[pixel[1], pixel[0] + 1].item() == pytest.approx(opacity * np.exp(-a / 2), abs=1e-6)
+    assert out.silhouette[pixel[1] + 1, pixel[0]].item() == pytest.approx(opacity * np.exp(-c / 2), abs=1e-6)
+    assert out.silhouette[pixel[1] + 1, pixel[0] + 1].item() == pytest.approx(opacity * np.exp(-(a + 2 * b + c) / 2), abs=1e-6)
+    assert out.silhouette[pixel[1] + 1, pixel[0] - 1].item() == pytest.approx(opacity * np.exp(-(a - 2 * b + c) / 2), abs=1e-6)
+    # Along the row the 3-sigma cut-off lies at 3 / sqrt(a) = 6.07 px (a circle of radius f r / z would end at 6).
+    assert 36 < 9 / a < 49
+    assert out.silhouette[pixel[1], pixel[0] + 6].item() == pytest.approx(opacity * np.exp(-36 * a / 2), abs=1e-6)
     assert out.silhouette[pixel[1], pixel[0] + 7].item() == 0.0
     assert out.silhouette.argmax().item() == pixel[1] * camera.width + pixel[0]
+
+
+def _ewa_covariance(means_cam: torch.Tensor, radii_m: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """(M, 2, 2) J (r^2 I) J^T built as matrices, J's x / z, y / z clamped to jacobian_limits."""
+    x_lo, x_hi, y_lo, y_hi = jacobian_limits(camera)
+    x, y, z = means_cam.unbind(1)
+    xn, yn = (x / z).clamp(x_lo, x_hi), (y / z).clamp(y_lo, y_hi)
+    zeros = torch.zeros_like(z)
+    jacobian = torch.stack([torch.stack([camera.fx / z, zeros, -camera.fx * xn / z], 1),
+                            torch.stack([zeros, camera.fy / z, -camera.fy * yn / z], 1)], 1)  # (M, 2, 3)
+    return radii_m[:, None, None] ** 2 * jacobian @ jacobian.transpose(1, 2)
+
+
+def test_screen_footprint_is_the_ewa_projection_of_the_isotropic_covariance():
+    """conics_px and bounds_px against J (r^2 I) J^T built as matrices (means all over the image and off it, where
+    the Jacobian is clamped): the inverse, and 3 sqrt(largest eigenvalue) for fx == fy (an upper bound for fx != fy,
+    at most fy / fx larger here)."""
+    camera = camera_of(40, 30)
+    gaussians = random_gaussians(300, seed=13, dtype=torch.float64)
+    means_cam = camera_frame_means(gaussians, torch.eye(4, dtype=torch.float64))
+    ahead = means_cam[:, 2] > 0.01
+    x_lo, x_hi, _, _ = jacobian_limits(camera)
+    normalised = means_cam[ahead, :2] / means_cam[ahead, 2:]
+    assert ((normalised[:, 0] < x_lo) | (normalised[:, 0] > x_hi)).any() and (normalised.abs() > 0.3).all(1).any()
+    radii = torch.exp(gaussians.log_radii_m[ahead])
+    for lens, exact in ((camera, False), (dataclasses.replace(camera, fy=camera.fx), True)):
+        screen = project_to_screen(gaussians, means_cam, lens)
+        covariance = _ewa_covariance(means_cam[ahead], radii, lens)
+        conic = torch.linalg.inv(covariance)
+        torch.testing.assert_close(screen.conics_px[ahead], torch.stack([conic[:, 0, 0], conic[:, 0, 1], conic[:, 1, 1]], 1), rtol=1e-10, atol=0)
+        three_sigma = 3.0 * torch.linalg.eigvalsh(covariance)[:, 1].sqrt()
+        if exact:
+            torch.testing.assert_close(screen.bounds_px[ahead], three_sigma, rtol=1e-10, atol=0)
+        else:
+            assert (screen.bounds_px[ahead] >= three_sigma * (1 - 1e-12)).all()
+            assert (screen.bounds_px[ahead] <= three_sigma * (camera.fy / camera.fx)).all()
 
 
 @pytest.mark.parametrize("backend", ["cpu", "reference"])
@@ -259,7 +308,7 @@ def test_tile_lists_hold_the_overlapping_gaussians_front_to_back(dtype):
     packed = np.zeros((count, cpu_kernel.PACKED_COLUMNS), dtype)
     packed[:, cpu_kernel.U] = rng.uniform(-10, width + 10, count)
     packed[:, cpu_kernel.V] = rng.uniform(-10, height + 10, count)
-    packed[:, cpu_kernel.RADIUS] = rng.uniform(0.2, 6.0, count)
+    packed[:, cpu_kernel.BOUND] = rng.uniform(0.6, 18.0, count)
     depths = rng.choice([-1.0, 0.5, 1.0, 1.0 + 1e-12, 2.0], count) + rng.integers(0, 3, count) * 0.25
     packed[:, cpu_kernel.DEPTH] = depths
     packed[:, cpu_kernel.OPACITY] = 0.5
@@ -268,7 +317,7 @@ def test_tile_lists_hold_the_overlapping_gaussians_front_to_back(dtype):
     for gaussian in range(count):
         entry_gaussian[bins.slot_entries[bins.slot_starts[gaussian] : bins.slot_starts[gaussian + 1]]] = gaussian
     depth32 = packed[:, cpu_kernel.DEPTH].astype(np.float32)
-    reach = 3.0 * packed[:, cpu_kernel.RADIUS].astype(np.float64) + cpu_kernel.BOX_SLACK_PX
+    reach = packed[:, cpu_kernel.BOUND].astype(np.float64) + cpu_kernel.BOX_SLACK_PX
     u, v = packed[:, cpu_kernel.U].astype(np.float64), packed[:, cpu_kernel.V].astype(np.float64)
     # Pixel box (clipped to the image) of every Gaussian, brute force.
     x0, x1 = np.maximum(np.ceil(u - reach), 0), np.minimum(np.floor(u + reach), width - 1)
@@ -292,16 +341,16 @@ def test_float32_gaussians_composite_as_their_float64_values_rounded_once():
     camera = camera_of(40, 30)
     gaussians = random_gaussians(600, seed=12, opacity_logit_mean=1.0)
     screen32 = project_to_screen(gaussians, camera_frame_means(gaussians, torch.eye(4, dtype=torch.float64)), camera)
-    fields = ("means_px", "radii_px", "depths_m", "opacity", "rgb")
+    fields = ("means_px", "conics_px", "bounds_px", "depths_m", "opacity", "rgb")
     generator = torch.Generator().manual_seed(0)
     weights = [torch.randn(shape, generator=generator) for shape in ((30, 40, 3), (30, 40), (30, 40))]
     results = {}
     for dtype in (torch.float32, torch.float64):
-        screen = ScreenGaussians(**{name: getattr(screen32, name).detach().to(dtype).requires_grad_(True) for name in fields})
+        screen = ScreenGaussians(**{name: getattr(screen32, name).detach().to(dtype).requires_grad_(name != "bounds_px") for name in fields})
         out = composite_cpu(screen, camera.width, camera.height, torch.tensor((0.25, 0.5, 0.125), dtype=dtype))  # exact in both
         maps = (out.rgb, out.depth_m, out.silhouette)
         loss = sum((image * weight.to(dtype)).sum() for image, weight in zip(maps, weights))
-        grads = torch.autograd.grad(loss, [getattr(screen, name) for name in fields])
+        grads = torch.autograd.grad(loss, [getattr(screen, name) for name in fields if name != "bounds_px"])
         results[dtype] = [tensor.detach() for tensor in maps + tuple(grads)]
     for single, double in zip(results[torch.float32], results[torch.float64]):
         assert single.dtype == torch.float32
@@ -312,9 +361,9 @@ def test_float32_gaussians_composite_as_their_float64_values_rounded_once():
 def test_gsplat_agrees_with_cpu_kernel():
     pytest.importorskip("gsplat")
     camera = Camera(64, 48, fx=60.0, fy=60.0, cx=31.5, cy=23.5)
-    # Small Gaussians near the optical axis, where gsplat's EWA footprint is the same circle as ours.
+    # Over the whole image, corners included: both draw the EWA footprint (gsplat_backend's docstring lists what
+    # still differs: its 1/255 alpha skip and square cut-off).
     gaussians = random_gaussians(500, seed=2, radius_m=(0.02, 0.04))
-    gaussians.means_m[:, :2] *= 0.4
     gaussians.means_m[:, 2] = gaussians.means_m[:, 2].abs() + 1.5
     cpu = render(gaussians, camera, np.eye(4), background_rgb=BACKGROUND, backend="cpu")
     cuda_gaussians = GaussianTensors(**{name: getattr(gaussians, name).cuda() for name in FIELDS})

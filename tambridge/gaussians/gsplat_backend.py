@@ -3,14 +3,12 @@
 The Gaussians are handed over already in the camera frame (identity view matrix), so the pose chain,
 ``pose_delta`` included, stays in torch and its gradients flow exactly as on the CPU path.
 
-Differences from our image model (:mod:`tambridge.gaussians.model`), documented rather than hidden:
+Our image model (:mod:`tambridge.gaussians.model`) is gsplat's: the isotropic 3D covariance ``r^2 I`` projected
+with the EWA Jacobian (clamped as gsplat clamps it), no ``eps2d`` dilation (we pass ``eps2d=0``; gsplat's default
+adds 0.3 px^2 of blur to every 2D covariance), alpha clamped at 0.99. What still differs, documented rather than hidden:
 
-- gsplat projects the isotropic 3D covariance ``r^2 I`` with the EWA Jacobian, so a Gaussian away from the
-  optical axis (or with fx != fy) becomes a slightly elliptical splat, and it adds ``eps2d = 0.3`` px^2 of
-  blur to every 2D covariance; we pass ``eps2d=0`` and accept the EWA footprint. Near the image centre with
-  fx == fy the two models agree.
 - gsplat skips alphas below 1/255 and cuts splats at 3 sigma of the largest eigenvalue (a square tile box);
-  we cut at 3 sigma per pixel. The colour differences are at the 1/255 level.
+  we cut at 3 sigma per pixel in the Mahalanobis sense. The colour differences are at the 1/255 level.
 - Depth: we ask for ``render_mode="RGB+D"``, gsplat's *accumulated* depth ``sum_i z_i alpha_i T_i``, which is our
   unnormalised ``D(p)``; gsplat's "ED" (expected depth) would be ``D / silhouette``.
 - Pixel centres: gsplat puts pixel ``i``'s centre at ``i + 0.5``, OpenCV (ours) at ``i``, so cx, cy move by 0.5.

@@ -24,7 +24,6 @@ from tambridge.state import attribute_state, restore_attributes
 from tambridge.gaussians.losses import map_loss
 from tambridge.gaussians.model import (
     NEAR_PLANE_M,
-    SIGMA_CUTOFF,
     GaussianTensors,
     RenderOutput,
     camera_frame_means,
@@ -236,12 +235,13 @@ class GaussianMap:
         return GaussianTensors(means_world, params["rgb"], params["log_radii_m"], params["opacity_logits"])
 
     def visible_rows(self, camera: Camera, world_from_camera: np.ndarray) -> torch.Tensor:
-        """(M,) long indices of the Gaussians whose 3-sigma disc can touch the image of ``camera`` at this pose."""
+        """(M,) long indices of the Gaussians whose bounding disc (of the 3-sigma ellipse) can touch the image of
+        ``camera`` at this pose: exactly those the CPU kernel bins."""
         with torch.no_grad():
             gaussians = self.gaussians()
             means_camera = camera_frame_means(gaussians, torch.as_tensor(np.asarray(world_from_camera, np.float64)))
             screen = project_to_screen(gaussians, means_camera, camera)
-            reach = SIGMA_CUTOFF * screen.radii_px
+            reach = screen.bounds_px
             u, v = screen.means_px[:, 0], screen.means_px[:, 1]
             inside = (
                 (screen.depths_m > NEAR_PLANE_M)
@@ -351,7 +351,8 @@ class GaussianMap:
         return int(mask.sum()) / valid
 
     def prune(self, camera: Camera, world_from_camera: np.ndarray) -> int:
-        """Remove Gaussians of opacity below ``tau`` and those bigger than ``prune_radius_px`` pixels in this view.
+        """Remove Gaussians of opacity below ``tau`` and those bigger than ``prune_radius_px`` pixels in this view
+        (radius ``f r / z``).
 
         Returns how many were removed.
         """
@@ -359,6 +360,8 @@ class GaussianMap:
             opacity = torch.sigmoid(self._params["opacity_logits"])
             means_camera = camera_frame_means(self.gaussians(), torch.as_tensor(np.asarray(world_from_camera, np.float64)))
             depth = means_camera[:, 2].clamp(min=1e-3)
+            # The Gaussian's own size in pixels, f r / z, not its footprint's long axis (up to ~1.25x larger off
+            # axis): on 7-Scenes 0-699 the long axis pruned splats the map needed (docs/benchmarks.md).
             radius_px = camera.mean_focal_px * torch.exp(self._params["log_radii_m"]) / depth
             oversized = (means_camera[:, 2] > 0) & (radius_px > self.config.prune_radius_px)
             kept = (opacity >= self.config.tau) & ~oversized

@@ -1,4 +1,4 @@
-"""Differentiable rendering of isotropic Gaussians: colour, depth and silhouette, with gradients to the pose.
+"""Differentiable rendering of isotropic Gaussians (EWA footprints, :mod:`tambridge.gaussians.model`): colour, depth and silhouette, with gradients to the pose.
 
 ``render`` moves the means into the camera frame of ``world_from_camera @ exp_se3(pose_delta)`` and projects
 them in torch (so autograd carries the pose and projection chain), then composites with one of three backends:
@@ -107,7 +107,8 @@ def render_cpu_untracked(
 def composite_cpu(screen: ScreenGaussians, width: int, height: int, background_rgb: torch.Tensor) -> RenderOutput:
     """Composite screen-space Gaussians with the numba kernels; outputs on the inputs' device and dtype."""
     rgb, depth, silhouette = _CpuComposite.apply(
-        screen.means_px, screen.radii_px, screen.depths_m, screen.opacity, screen.rgb, width, height, background_rgb
+        screen.means_px, screen.conics_px, screen.bounds_px, screen.depths_m, screen.opacity, screen.rgb,
+        width, height, background_rgb,
     )
     return RenderOutput(rgb=rgb, depth_m=depth, silhouette=silhouette)
 
@@ -122,8 +123,9 @@ class _CpuComposite(torch.autograd.Function):
     """Autograd wrapper of :mod:`cpu_kernel`: inputs are the ScreenGaussians fields, outputs the three maps."""
 
     @staticmethod
-    def forward(ctx, means_px, radii_px, depths_m, opacity, rgb, width, height, background_rgb):
-        columns = [means_px, radii_px[:, None], depths_m[:, None], opacity[:, None], rgb]  # cpu_kernel's column order
+    def forward(ctx, means_px, conics_px, bounds_px, depths_m, opacity, rgb, width, height, background_rgb):
+        # cpu_kernel's column order
+        columns = [means_px, conics_px, bounds_px[:, None], depths_m[:, None], opacity[:, None], rgb]
         # Stored in float32 unless a field is float64: exact either way (the kernels compute in float64), and
         # float32 rows halve the memory traffic of binning and compositing.
         storage = torch.float64 if any(column.dtype == torch.float64 for column in columns) else torch.float32
@@ -148,6 +150,6 @@ class _CpuComposite(torch.autograd.Function):
         grads = grads.to(device=ctx.device, dtype=ctx.dtype)
         k = cpu_kernel
         return (
-            grads[:, k.U : k.V + 1], grads[:, k.RADIUS], grads[:, k.DEPTH], grads[:, k.OPACITY], grads[:, k.RED : k.RED + 3],
-            None, None, None,
+            grads[:, k.U : k.V + 1], grads[:, k.CONIC_A : k.CONIC_C + 1], None, grads[:, k.DEPTH], grads[:, k.OPACITY],
+            grads[:, k.RED : k.RED + 3], None, None, None,
         )  # fmt: skip

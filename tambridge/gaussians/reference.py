@@ -2,7 +2,8 @@
 
 Every Gaussian is evaluated at every pixel, sorted by depth, and composited with a cumulative product of
 ``1 - alpha``; autograd gives the gradients. It applies exactly the cut-offs of :mod:`tambridge.gaussians.model`
-(near plane, 3-sigma, alpha clamp, early stop), so the fast kernels must agree with it to rounding.
+(near plane, 3-sigma Mahalanobis cut-off of the EWA footprint, no eps2d dilation, alpha clamp, early stop), so the
+fast kernels must agree with it to rounding.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from tambridge.gaussians.model import (
 
 def composite_pixels(
     means_px: torch.Tensor,
-    radii_px: torch.Tensor,
+    conics_px: torch.Tensor,
     depths_m: torch.Tensor,
     opacity: torch.Tensor,
     rgb: torch.Tensor,
@@ -31,18 +32,21 @@ def composite_pixels(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Composite N screen-space Gaussians at P pixels ``pixels_xy`` (P, 2); returns rgb (P, 3), depth (P,), silhouette (P,).
 
-    Inputs are the fields of :class:`ScreenGaussians` (means_px (N, 2), radii_px, depths_m, opacity (N,), rgb (N, 3)).
+    Inputs are the fields of :class:`ScreenGaussians` but the bound (means_px (N, 2), conics_px (N, 3), depths_m,
+    opacity (N,), rgb (N, 3)).
     """
     in_front = torch.nonzero(depths_m > NEAR_PLANE_M).squeeze(1)
     # Front to back by float32 depth, ties in index order: the order the CPU kernel uses whatever the dtype.
     order = in_front[torch.sort(depths_m[in_front].to(torch.float32), stable=True).indices]
-    means_px, radii_px, depths_m = means_px[order], radii_px[order], depths_m[order]
+    means_px, conics_px, depths_m = means_px[order], conics_px[order], depths_m[order]
     opacity, rgb = opacity[order], rgb[order]
 
-    offsets = pixels_xy[None, :, :] - means_px[:, None, :]  # (N, P, 2)
-    radius_sq = (offsets * offsets).sum(dim=2) / (radii_px * radii_px)[:, None]  # (N, P) in units of r2D^2
-    alpha = torch.clamp(opacity[:, None] * torch.exp(-0.5 * radius_sq), max=ALPHA_MAX)
-    alpha = torch.where(radius_sq <= SIGMA_CUTOFF**2, alpha, torch.zeros_like(alpha))
+    dx = pixels_xy[None, :, 0] - means_px[:, None, 0]  # (N, P)
+    dy = pixels_xy[None, :, 1] - means_px[:, None, 1]
+    a, b, c = (conics_px[:, column, None] for column in range(3))
+    mahalanobis_sq = (a * dx + 2.0 * b * dy) * dx + c * dy * dy  # d^T Q d, (N, P)
+    alpha = torch.clamp(opacity[:, None] * torch.exp(-0.5 * mahalanobis_sq), max=ALPHA_MAX)
+    alpha = torch.where(mahalanobis_sq <= SIGMA_CUTOFF**2, alpha, torch.zeros_like(alpha))
 
     transmittance_after = torch.cumprod(1.0 - alpha, dim=0)  # T_{i+1} = prod_{j<=i} (1 - alpha_j)
     included = (transmittance_after >= TRANSMITTANCE_MIN).detach()  # a prefix along N: T only decreases
@@ -64,13 +68,13 @@ def composite_reference(
     """Render (height, width) maps of ``screen``; ``background_rgb`` (3,) fills what the Gaussians leave uncovered.
 
     ``tile_px=None`` evaluates all Gaussians at all pixels in one dense tensor (N x H x W: tests only). With a tile
-    size, each tile of pixels composites only the Gaussians whose 3-sigma box overlaps it (exact: the others have
+    size, each tile of pixels composites only the Gaussians whose bounding box overlaps it (exact: the others have
     alpha 0 there) and, under autograd, recomputes its tile in the backward pass (checkpointing) so that memory stays
     bounded; this is the naive torch baseline of the benchmark.
     """
     device, dtype = screen.means_px.device, screen.means_px.dtype
     background_rgb = torch.as_tensor(background_rgb, dtype=dtype, device=device)
-    fields = (screen.means_px, screen.radii_px, screen.depths_m, screen.opacity, screen.rgb)
+    fields = (screen.means_px, screen.conics_px, screen.depths_m, screen.opacity, screen.rgb)
     if tile_px is None:
         ys, xs = torch.meshgrid(
             torch.arange(height, dtype=dtype, device=device), torch.arange(width, dtype=dtype, device=device), indexing="ij"
@@ -78,7 +82,7 @@ def composite_reference(
         colour, depth, silhouette = composite_pixels(*fields, torch.stack([xs, ys], dim=-1).reshape(-1, 2), background_rgb)
         return RenderOutput(colour.reshape(height, width, 3), depth.reshape(height, width), silhouette.reshape(height, width))
 
-    reach = SIGMA_CUTOFF * screen.radii_px.detach()
+    reach = screen.bounds_px.detach()
     u, v = screen.means_px.detach()[:, 0], screen.means_px.detach()[:, 1]
     visible = screen.depths_m.detach() > NEAR_PLANE_M
     rows_rgb, rows_depth, rows_silhouette = [], [], []
