@@ -54,6 +54,12 @@ pinhole_inverse_depth_numba = numba.njit(cache=True, inline="always")(pinhole_in
 pinhole_ray_numba = numba.njit(cache=True, inline="always")(pinhole_ray)
 
 
+def exposure_offsets_s(count: int, exposure_s: float) -> np.ndarray:
+    """(count,) times, seconds from a frame's timestamp, that sample its exposure ``[t - e/2, t + e/2]``: the
+    midpoints of ``count`` equal slices (0 among them for an odd count)."""
+    return (np.arange(count) + 0.5) / count * exposure_s - exposure_s / 2.0
+
+
 @dataclasses.dataclass(frozen=True)
 class Camera:
     """Pinhole intrinsics of the colour camera, in pixels; ``distortion`` is OpenCV's (k1 k2 p1 p2 k3)."""
@@ -108,6 +114,14 @@ class Camera:
 
         x, y = pinhole_ray(pixels_px[..., 0], pixels_px[..., 1], self.fx, self.fy, self.cx, self.cy)
         return torch.stack([x * depth_m, y * depth_m, depth_m], dim=-1)
+
+    def depth_points(self, depth_m: np.ndarray, stride: int) -> np.ndarray:
+        """Camera-frame points (M, 3), metres, of the valid (> 0) z-depths of ``depth_m`` (H, W) on every
+        ``stride``-th pixel of its rows and columns."""
+        rows, columns = np.mgrid[0 : self.height : stride, 0 : self.width : stride]
+        depth = np.asarray(depth_m, np.float64)[rows, columns]
+        valid = depth > 0
+        return self.backproject(np.stack([columns, rows], axis=-1)[valid].astype(np.float64), depth[valid])
 
     def image_motion_px(self, points_camera_m: np.ndarray, a_from_camera: np.ndarray, b_from_camera: np.ndarray) -> float:
         """Largest distance, pixels, between the images of ``points_camera_m`` (N, 3, this camera's frame) seen by

@@ -16,11 +16,12 @@ import math
 
 import numpy as np
 
-from tambridge.camera import Camera
+from tambridge.camera import Camera, exposure_offsets_s
 from tambridge.geometry import inverse, poses_along
 
 DEPTH_SAMPLE_STEP = 4
-"""Every this many pixels (along rows and columns) of a view's depth measure its image motion."""
+"""Every this many pixels (along rows and columns) of a view's depth measure its image motion (as the synthetic
+sequence's blur does)."""
 
 
 @dataclasses.dataclass
@@ -36,7 +37,7 @@ class ExposurePath:
     def offsets_s(self, count: int) -> np.ndarray:
         """(count,) sub-times, relative to the frame's timestamp: the midpoints of ``count`` equal slices of the
         exposure (0 among them for an odd count)."""
-        return (np.arange(count) + 0.5) / count * self.exposure_s - self.exposure_s / 2.0
+        return exposure_offsets_s(count, self.exposure_s)
 
     def poses(self, count: int) -> np.ndarray:
         """(count, 4, 4) ``frame_from_subpose`` at :meth:`offsets_s` along the path (:func:`poses_along`)."""
@@ -61,10 +62,7 @@ def subpose_count(path: ExposurePath | None, camera: Camera, depth_m: np.ndarray
     (the frame's own pose the middle one), at most ``max_count`` (rounded down to odd); 1 without a path."""
     if path is None or max_count <= 1:
         return 1
-    rows, columns = np.mgrid[0 : camera.height : DEPTH_SAMPLE_STEP, 0 : camera.width : DEPTH_SAMPLE_STEP]
-    depth = np.asarray(depth_m, np.float64)[rows, columns]
-    valid = depth > 0
-    points = camera.backproject(np.stack([columns, rows], axis=-1)[valid].astype(np.float64), depth[valid])
+    points = camera.depth_points(depth_m, DEPTH_SAMPLE_STEP)
     half = path.exposure_s / 2.0
     start, end = poses_along(path.times_s, path.frame_from_tracked, np.array([-half, half]))
     motion_px = (camera.image_motion_px(points, np.eye(4), inverse(start))

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import yaml
 
-from tambridge.camera import Camera
+from tambridge.camera import Camera, exposure_offsets_s
 from tambridge.errors import ConfigError
 from tambridge.files import atomic_path, atomic_write_text
 from tambridge.geometry import inverse, look_at
@@ -319,8 +319,7 @@ MAX_BLUR_SUBFRAMES = 128
 def subframe_positions(frame_index: int, fps: float, exposure_s: float, count: int) -> np.ndarray:
     """Fractional frame positions (count,) of the sub-frames of frame ``frame_index``: the midpoints of ``count``
     equal slices of the exposure ``[t - exposure_s / 2, t + exposure_s / 2]`` around its timestamp ``t``."""
-    offsets_s = (np.arange(count) + 0.5) / count * exposure_s - exposure_s / 2.0
-    return frame_index + offsets_s * fps
+    return frame_index + exposure_offsets_s(count, exposure_s) * fps
 
 
 def blur_subframe_count(camera: Camera, depth_m: np.ndarray, world_from_camera: np.ndarray,
@@ -328,10 +327,7 @@ def blur_subframe_count(camera: Camera, depth_m: np.ndarray, world_from_camera: 
     """Sub-frames enough that the scene seen at ``world_from_camera`` (z-depth (H, W) metres) moves at most
     :data:`BLUR_STEP_PX` between consecutive ones, from pose ``world_from_start`` to ``world_from_end`` (4x4);
     at least 2, at most :data:`MAX_BLUR_SUBFRAMES`. The exposure is short: its motion is taken as linear."""
-    rows, columns = np.mgrid[0 : camera.height : 4, 0 : camera.width : 4]
-    depth = depth_m[rows, columns]
-    pixels = np.stack([columns, rows], axis=-1)[depth > 0].astype(np.float64)
-    points_camera = camera.backproject(pixels, depth[depth > 0].astype(np.float64))
+    points_camera = camera.depth_points(depth_m, 4)
     motion_px = camera.image_motion_px(points_camera, inverse(world_from_start) @ world_from_camera,
                                        inverse(world_from_end) @ world_from_camera)
     return int(np.clip(np.ceil(motion_px / BLUR_STEP_PX), 2, MAX_BLUR_SUBFRAMES))
