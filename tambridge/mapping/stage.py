@@ -125,8 +125,10 @@ class MappingStage:
         resolution): :meth:`view_pose` (4, 4), or (K, 4, 4) along its exposure path where the image moves
         ``bridge.blur_step_px`` or more over the exposure (:func:`subpose_count`)."""
         pose = self.view_pose(view)
-        count = subpose_count(view.exposure_path, camera, depth_m.cpu().numpy(), self.bridge_config.blur_step_px,
-                              self.bridge_config.blur_max_subposes)
+        # A view without a path (blur modelling off, the default on real data) needs no look at its depth.
+        count = 1 if view.exposure_path is None else subpose_count(
+            view.exposure_path, camera, depth_m.cpu().numpy(), self.bridge_config.blur_step_px,
+            self.bridge_config.blur_max_subposes)
         if camera == self.camera:
             self.subposes[view.frame_index] = count
         return pose if count == 1 else pose @ view.exposure_path.poses(count)
