@@ -41,16 +41,12 @@ from tambridge.files import atomic_write_text  # noqa: E402
 WORST_FRAMES = 12
 
 
-def parse_variant(text: str) -> dict:
-    """``"a=1,b=x"`` -> ``{"a": 1, "b": "x"}`` (values as JSON where they parse, else strings)."""
-    overrides = {}
-    for item in filter(None, text.split(",")):
-        key, value = item.split("=", 1)
-        try:
-            overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key] = value
-    return overrides
+def variant_config(text: str):
+    """The ORB frontend's settings of a variant ``"a=1,b=x"``: its overrides of ``frontend.orb``, parsed and checked
+    as ``--set`` is (:func:`tambridge.config.load_config`)."""
+    from tambridge.config import load_config
+
+    return load_config(None, [f"frontend.orb.{item}" for item in filter(None, text.split(","))]).frontend.orb
 
 
 def share_explained(errors: np.ndarray, displacements: np.ndarray) -> tuple[float, float]:
@@ -70,13 +66,12 @@ def linear_fit(errors: np.ndarray, regressors: np.ndarray) -> tuple[np.ndarray, 
     return solution[:-1], float(1.0 - np.sum(residual**2) / max(np.sum(centred**2), 1e-300)), residual
 
 
-def track(frames, sequence, overrides: dict) -> dict:
-    """One tracking run: per-frame records and the run's figures."""
+def track(frames, sequence, config) -> dict:
+    """One tracking run with the ORB frontend's ``config``: per-frame records and the run's figures."""
     from tambridge.evaluation.trajectory import evaluate_trajectory
-    from tambridge.frontend.orb.config import OrbFrontendConfig
     from tambridge.frontend.orb.frontend import OrbFrontend
 
-    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**overrides))
+    frontend = OrbFrontend(sequence.camera, config)
     inliers = {}
     wall_s = cpu_s = 0.0
     load = os.getloadavg()[0]
@@ -167,7 +162,7 @@ def main() -> None:
         frames = [sequence[index] for index in range(segment["start"], end)]
         for variant in args.variants:
             row = {"segment": name, "variant": variant or "default",
-                   **analyse(frames, sequence, track(frames, sequence, parse_variant(variant)))}
+                   **analyse(frames, sequence, track(frames, sequence, variant_config(variant)))}
             rows.append(row)
             print(f"{name} [{row['variant']}]: ATE {row['ate_cm']:.3f} cm, max {row['max_cm']:.2f} cm, RPE "
                   f"{row['rpe_cm']:.3f} cm/frame, {row['fps']:.1f} frames/s wall, {row['cpu_fps']:.1f} CPU (load "
