@@ -46,13 +46,24 @@ SEGMENTS = {
 MODES = ("never", "auto", "always")
 
 
-def track_segment(frames, sequence, mode: str, overrides: dict, trajectory_path: Path | None = None):
-    """``(trajectory, row)`` of one tracking run over ``frames``."""
+def orb_config(overrides: list[str]):
+    """The ORB frontend's settings with ``KEY=VALUE`` overrides of ``frontend.orb``, parsed and checked as the CLI's
+    ``--set`` is (:func:`tambridge.config.load_config`): an unknown key or a bad value exits with its one-line error."""
+    from tambridge.config import load_config
+    from tambridge.errors import ConfigError
+
+    try:
+        return load_config(None, [f"frontend.orb.{item}" for item in overrides]).frontend.orb
+    except ConfigError as error:
+        raise SystemExit(f"error: {error}") from None
+
+
+def track_segment(frames, sequence, config, trajectory_path: Path | None = None):
+    """``(trajectory, row)`` of one tracking run over ``frames`` with the ORB frontend's ``config``."""
     from tambridge.evaluation.trajectory import evaluate_trajectory
-    from tambridge.frontend.orb.config import OrbFrontendConfig
     from tambridge.frontend.orb.frontend import OrbFrontend
 
-    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(dense_depth=mode, **overrides))
+    frontend = OrbFrontend(sequence.camera, config)
     started = time.perf_counter()
     thread_cpu_s = 0.0
     for frame in frames:
@@ -66,7 +77,7 @@ def track_segment(frames, sequence, mode: str, overrides: dict, trajectory_path:
         from tambridge.trajectory import write_tum_trajectory
 
         write_tum_trajectory(trajectory_path, result.trajectory)
-    return result.trajectory, {"mode": mode, "frames": len(frames), "ate_cm": 100 * errors.ate_rmse_m,
+    return result.trajectory, {"mode": config.dense_depth.value, "frames": len(frames), "ate_cm": 100 * errors.ate_rmse_m,
             "max_cm": 100 * errors.ate_max_m, "rpe_cm": 100 * errors.rpe_trans_rmse_m,
             "rpe_deg": errors.rpe_rot_rmse_deg, "fps": len(frames) / tracking_s, "tracking_s": tracking_s,
             "tracking_thread_cpu_ms": 1e3 * thread_cpu_s / len(frames), "stage_s": result.timings_s,
@@ -215,7 +226,7 @@ def main() -> None:
                         "measure how well its relative poses fit the depth (with the last mode's trajectory)")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "dense_tracking.json")
     args = parser.parse_args()
-    overrides = {key: json.loads(value) for key, value in (item.split("=", 1) for item in args.set)}
+    configs = {mode: orb_config([f"dense_depth={mode}", *args.set]) for mode in args.modes}
     segments = {name: SEGMENTS[name] for name in args.segments}
     if args.trajectories is not None:
         args.trajectories.mkdir(parents=True, exist_ok=True)
@@ -228,7 +239,7 @@ def main() -> None:
         costs[name] = term_cost(frames, sequence)
         for mode in args.modes:
             path = None if args.trajectories is None else args.trajectories / f"{name}_{mode}.txt"
-            trajectory, row = track_segment(frames, sequence, mode, overrides, path)
+            trajectory, row = track_segment(frames, sequence, configs[mode], path)
             row = {"segment": name, **row, "load_1min": os.getloadavg()[0]}
             print(format_table([row]).splitlines()[-1], flush=True)
             rows.append(row)
@@ -240,7 +251,7 @@ def main() -> None:
     for name, cost in costs.items():
         print(f"  {name}: {cost['samples_per_frame']} samples/frame, sampling {cost['sampling_ms']:.2f} ms, "
               f"kernel {cost['kernel_ms_per_step']:.2f} ms per Gauss-Newton step, keyframe maps {cost['keyframe_maps_ms']:.2f} ms")
-    atomic_write_text(args.output, json.dumps({"machine": platform.node(), "cpus": os.cpu_count(), "overrides": overrides,
+    atomic_write_text(args.output, json.dumps({"machine": platform.node(), "cpus": os.cpu_count(), "overrides": args.set,
                                                "rows": rows, "term_cost": costs, "limits": limits}, indent=2) + "\n")
 
 

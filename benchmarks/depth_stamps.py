@@ -35,18 +35,10 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.dense_tracking import SEGMENTS, ground_truth_at  # noqa: E402
+from benchmarks.dense_tracking import SEGMENTS, ground_truth_at, orb_config  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
 WORST_FRAMES = 12
-
-
-def variant_config(text: str):
-    """The ORB frontend's settings of a variant ``"a=1,b=x"``: its overrides of ``frontend.orb``, parsed and checked
-    as ``--set`` is (:func:`tambridge.config.load_config`)."""
-    from tambridge.config import load_config
-
-    return load_config(None, [f"frontend.orb.{item}" for item in filter(None, text.split(","))]).frontend.orb
 
 
 def share_explained(errors: np.ndarray, displacements: np.ndarray) -> tuple[float, float]:
@@ -153,6 +145,7 @@ def main() -> None:
     parser.add_argument("--variants", nargs="*", default=[""], help="comma-separated KEY=VALUE overrides per run")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "depth_stamps.json")
     args = parser.parse_args()
+    configs = {variant: orb_config(list(filter(None, variant.split(",")))) for variant in args.variants}
     rows = []
     segments = {name: SEGMENTS[name] for name in args.segments}
     segments.update({folder.name: dict(folder=folder, camera=None, start=0, end=None) for folder in args.folder})
@@ -162,7 +155,7 @@ def main() -> None:
         frames = [sequence[index] for index in range(segment["start"], end)]
         for variant in args.variants:
             row = {"segment": name, "variant": variant or "default",
-                   **analyse(frames, sequence, track(frames, sequence, variant_config(variant)))}
+                   **analyse(frames, sequence, track(frames, sequence, configs[variant]))}
             rows.append(row)
             print(f"{name} [{row['variant']}]: ATE {row['ate_cm']:.3f} cm, max {row['max_cm']:.2f} cm, RPE "
                   f"{row['rpe_cm']:.3f} cm/frame, {row['fps']:.1f} frames/s wall, {row['cpu_fps']:.1f} CPU (load "
