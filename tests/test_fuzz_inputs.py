@@ -105,19 +105,21 @@ def test_index_files_give_the_listed_frames_or_an_error_naming_file_and_line(ima
         pairs = associate(np.array([s for s, _ in rgb_entries]), np.array([s for s, _ in depth_entries]))
         rgb_paths = [image_folder / rgb_entries[i][1] for i, _ in pairs]
         depth_paths = [image_folder / depth_entries[j][1] for _, j in pairs]
-        # The first frame's depth is read on opening (the depth-scale check), then each frame's colour and depth.
-        reads = [("depth", depth_paths[0])] + [read for pair in zip(rgb_paths, depth_paths)
-                                               for read in (("rgb", pair[0]), ("depth", pair[1]))]
-        for wanted, path in reads:
+        # Opening checks every frame's colour then depth file is there; then it reads the first frame's depth (the
+        # depth-scale check), then each frame's colour and depth is decoded.
+        listed = [item for pair in zip(rgb_paths, depth_paths) for item in (("rgb", pair[0]), ("depth", pair[1]))]
+        for wanted, path in listed:
             kind = image_kind(image_folder, path)
             if kind == "folder":
                 expected_error = f"{path}: |listed in {wanted}.txt but is a folder, not an image"
             elif kind == "missing":
                 expected_error = f"{path}: |image listed in {wanted}.txt does not exist"
-            elif wanted == "depth" and kind == "rgb":
-                expected_error = f"{path}: |depth must be a single-channel 16-bit PNG"
-            if expected_error:  # (a depth PNG read as colour is a valid 8-bit grey image)
+            if expected_error:
                 break
+        for wanted, path in [] if expected_error else [("depth", depth_paths[0])] + listed:
+            if wanted == "depth" and image_kind(image_folder, path) == "rgb":
+                expected_error = f"{path}: |depth must be a single-channel 16-bit PNG"
+                break  # (a depth PNG read as colour is a valid 8-bit grey image)
 
     if expected_error:
         start, phrase = expected_error.split("|")
@@ -213,11 +215,14 @@ def test_truncated_images_are_named(tmp_path, kind, fraction):
     damaged = folder / (rgb_name if kind.startswith("rgb") else "depth/1.png")
     data = damaged.read_bytes()
     damaged.write_bytes(data[: int(len(data) * fraction)])
-    # An empty file, a JPEG without its end marker, or a PNG that does not decode: each names the damaged file.
+    # An empty file, a JPEG without its end marker, a PNG without its IEND chunk (all refused on opening), or a PNG
+    # cut inside its last chunk that does not decode: each names the damaged file.
     if fraction == 0.0:
         reason = "empty file"
     elif kind == "rgb.jpg":
         reason = "JPEG has no end marker"
+    elif b"IEND" not in data[: int(len(data) * fraction)]:
+        reason = "PNG has no IEND chunk"
     else:
         reason = "cannot decode image"
     with pytest.raises(SequenceFormatError) as raised:

@@ -123,12 +123,20 @@ def test_timestamps_with_no_match(tmp_path):
         open_sequence(tmp_path / "seq")
 
 
-@pytest.mark.parametrize("content, message", [(b"", "empty file"), (b"\x89PNG\r\n\x1a\nnot really", "cannot decode")])
-def test_corrupt_or_empty_png(tmp_path, content, message):
+@pytest.mark.parametrize("content, message", [(b"", "empty file"), (b"\x89PNG\r\n\x1a\nnot really", "PNG has no IEND chunk")])
+def test_empty_or_truncated_png_is_refused_on_opening(tmp_path, content, message):
+    # Checked for every frame before any is read, so that a run stops before its work and its outputs start.
     _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
     (tmp_path / "seq" / "depth" / "2.005.png").write_bytes(content)
-    sequence = open_sequence(tmp_path / "seq")
     with pytest.raises(SequenceFormatError, match=rf"2\.005\.png: {message}"):
+        open_sequence(tmp_path / "seq")
+
+
+def test_png_that_ends_right_but_does_not_decode_is_named_on_reading(tmp_path):
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
+    (tmp_path / "seq" / "depth" / "2.005.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really\0\0\0\0IEND\xaeB`\x82")
+    sequence = open_sequence(tmp_path / "seq")
+    with pytest.raises(SequenceFormatError, match=r"2\.005\.png: cannot decode image"):
         sequence[1]
 
 

@@ -268,10 +268,14 @@ class RgbdSequence:
 
 JPEG_START = b"\xff\xd8"
 JPEG_END = b"\xff\xd9"
+PNG_START = b"\x89PNG"
+PNG_END = b"IEND"
 
 
-def _imread(path: Path, flags: int, listed_in: str) -> np.ndarray:
-    """Decode an image by its content (whatever its extension); errors name the file and the fix."""
+def check_image_file(path: Path, listed_in: str) -> None:
+    """Raise :class:`SequenceFormatError` naming ``path`` and the fix unless it is a non-empty file that ends as its
+    format says (JPEG's end marker, PNG's IEND chunk): a stat and two short reads, no decoding, so that a whole
+    sequence is checked before any work starts."""
     if path.is_dir():
         raise SequenceFormatError(f"{path}: listed in {listed_in} but is a folder, not an image; fix {listed_in}")
     if not path.is_file():
@@ -280,12 +284,19 @@ def _imread(path: Path, flags: int, listed_in: str) -> np.ndarray:
     if size == 0:
         raise SequenceFormatError(f"{path}: empty file; re-extract the sequence")
     with open(path, "rb") as handle:
-        start = handle.read(2)
+        start = handle.read(len(PNG_START))
         handle.seek(max(0, size - 64))
         tail = handle.read()
     # libjpeg decodes a truncated file into a half-grey image with only a warning: check the end marker.
-    if start == JPEG_START and JPEG_END not in tail:
+    if start[:2] == JPEG_START and JPEG_END not in tail:
         raise SequenceFormatError(f"{path}: JPEG has no end marker (truncated); re-extract the sequence")
+    if start == PNG_START and PNG_END not in tail:
+        raise SequenceFormatError(f"{path}: PNG has no IEND chunk (truncated); re-extract the sequence")
+
+
+def _imread(path: Path, flags: int, listed_in: str) -> np.ndarray:
+    """Decode an image by its content (whatever its extension); errors name the file and the fix."""
+    check_image_file(path, listed_in)
     image = cv2.imread(str(path), flags)
     if image is None or image.size == 0:
         raise SequenceFormatError(f"{path}: cannot decode image (corrupt, truncated or not an image); re-extract the sequence")
@@ -344,6 +355,9 @@ def open_sequence(
         gt_rgb_paths=_gt_rgb_paths(folder, [rgb_list[i][1] for i, _ in pairs]),
         depth_timestamps_s=np.array([depth_stamps[j] for _, j in pairs]),
     )
+    for rgb_path, depth_path in zip(sequence.rgb_paths, sequence.depth_paths):
+        check_image_file(rgb_path, "rgb.txt")
+        check_image_file(depth_path, "depth.txt")
     if check_depth_scale:
         check_depth_scale_plausible(sequence)
     return sequence
