@@ -188,6 +188,8 @@ TUM_PRESETS: dict[str, RgbdSensor] = {
 
 _CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
 _COLOUR_KEYS = ("colour_fx", "colour_fy", "colour_cx", "colour_cy", "colour_from_depth")
+_KNOWN_KEYS = frozenset((*_CAMERA_KEYS, "depth_scale", "depth_invalid", "distortion", *(f"d{i}" for i in range(5)),
+                         "exposure_s", *_COLOUR_KEYS, "colour_width", "colour_height", "colour_distortion"))
 
 
 def tum_preset_for_folder(folder: Path) -> RgbdSensor | None:
@@ -208,6 +210,11 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
 
     ``depth_scale`` is required: only the TUM presets may assume TUM's 5000, since a wrong scale still gives a
     plausible-looking trajectory of the wrong size."""
+    # A misspelt optional key (exposure_sec, depth_invalide) would otherwise fall back to its default unseen.
+    unknown = sorted(str(key) for key in values if key not in _KNOWN_KEYS)
+    if unknown:
+        raise CameraConfigError(f"{source}: unknown key {', '.join(unknown)}; a camera file takes "
+                                f"{', '.join(sorted(_KNOWN_KEYS))}")
     missing = [key for key in (*_CAMERA_KEYS, "depth_scale") if key not in values]
     if missing:
         raise CameraConfigError(f"{source}: missing {', '.join(missing)}; a camera file needs "

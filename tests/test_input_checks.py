@@ -41,6 +41,18 @@ def test_a_camera_file_without_depth_scale_is_refused(tmp_path):
         load_sensor_file(path)
 
 
+@pytest.mark.parametrize("suffix", [".yaml", ".txt"])
+def test_a_misspelt_camera_key_is_refused_by_name(tmp_path, suffix):
+    # exposure_sec would otherwise leave exposure_s unset, and blur modelling off, without a word.
+    values = {**CAMERA, "exposure_sec": 0.03}
+    path = tmp_path / f"camera{suffix}"
+    path.write_text(yaml.safe_dump(values) if suffix == ".yaml" else "".join(f"{k} {v}\n" for k, v in values.items()))
+    with pytest.raises(CameraConfigError, match=rf"camera\{suffix}: unknown key exposure_sec; a camera file takes .*exposure_s"):
+        load_sensor_file(path)
+    path.write_text(path.read_text().replace("exposure_sec", "exposure_s"))
+    assert load_sensor_file(path).exposure_s == pytest.approx(0.03)
+
+
 @pytest.mark.parametrize("key", ["depth_scale", "fx", "cy"])
 @pytest.mark.parametrize("value", [".nan", ".inf", "-.inf"])
 def test_nan_or_inf_in_a_camera_key_is_refused_by_name(tmp_path, key, value):
