@@ -6,7 +6,8 @@
     python benchmarks/mapping_replay.py replay --ground-truth-poses --set bridge.enabled=false
 
 ``record`` runs the frontend over the sequence and stores every keyframe event with the frontend's keyframe poses
-at that moment, and the final result (a pickle under benchmarks/results/runs/). ``replay`` feeds those events to
+at that moment, and the final trajectory and keyframe poses (an ``.npz`` of plain arrays and one JSON document, read
+with ``allow_pickle=False``, under benchmarks/results/runs/). ``replay`` feeds those events to
 :class:`MappingStage` exactly as ``reconstruct`` does, so that mapper and bridge settings are compared on the same
 keyframes and poses (a live run's keyframes depend on timing: the ORB frontend's keyframes wait while mapping is
 busy; and the keyframes the mapper asks for where its map lacks coverage, ``mapper.coverage_unexplained``, are
@@ -22,8 +23,9 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
+import io
 import json
-import pickle
 import sys
 import time
 from pathlib import Path
@@ -36,6 +38,8 @@ sys.path.insert(0, str(ROOT))
 from tambridge.evaluation.mapping import evaluation_frames, score_views  # noqa: E402
 from tambridge.mapping.stage import MappingStage  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
+from tambridge.files import atomic_write_bytes  # noqa: E402
+from tambridge.frontend.contract import KeyframeEvent  # noqa: E402
 from tambridge.frontend.factory import make_frontend  # noqa: E402
 from tambridge.geometry import transform_points  # noqa: E402
 from tambridge.io.tum import RgbdSequence, open_sequence  # noqa: E402
@@ -75,28 +79,64 @@ def record(sequence_dir: Path, max_frames: int, cache: Path, overrides: list[str
             events.append((result.keyframe, {key: pose.copy() for key, pose in frontend.keyframe_poses().items()}))
     final = frontend.finish()
     print(f"tracked {len(sequence)} frames in {time.perf_counter() - started:.1f} s, {len(events)} keyframes")
+    write_events(cache, {"sequence_dir": str(sequence_dir), "max_frames": max_frames}, events, final)
+
+
+ARRAY_FIELDS = [field.name for field in dataclasses.fields(KeyframeEvent) if field.type in ("np.ndarray", np.ndarray)]
+
+
+def write_events(cache: Path, document: dict, events: list, final) -> None:
+    """``cache`` (.npz): each event's arrays and keyframe poses, the final trajectory and keyframe poses, and
+    ``document`` with the events' scalar fields as JSON; plain arrays only."""
+    arrays = {"trajectory_timestamps_s": final.trajectory.timestamps_s,
+              "trajectory_world_from_camera": final.trajectory.world_from_camera,
+              "final_keyframe_ids": np.array(sorted(final.keyframe_poses), np.int64),
+              "final_keyframe_poses": np.array([final.keyframe_poses[key] for key in sorted(final.keyframe_poses)])}
+    scalars = []
+    for number, (event, keyframe_poses) in enumerate(events):
+        fields = dataclasses.asdict(event)
+        arrays.update({f"event{number}_{name}": np.asarray(fields.pop(name)) for name in ARRAY_FIELDS})
+        arrays[f"event{number}_keyframe_ids"] = np.array(sorted(keyframe_poses), np.int64)
+        arrays[f"event{number}_keyframe_poses"] = np.array([keyframe_poses[key] for key in sorted(keyframe_poses)])
+        scalars.append(fields)
+    document = {**document, "events": scalars,
+                "keyframe_frame_indices": {str(key): index for key, index in final.keyframe_frame_indices.items()}}
+    arrays["document"] = np.frombuffer(json.dumps(document).encode(), np.uint8)
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
     cache.parent.mkdir(parents=True, exist_ok=True)
-    cache.write_bytes(pickle.dumps({"sequence_dir": str(sequence_dir), "max_frames": max_frames, "events": events,
-                                    "result": final}))
+    atomic_write_bytes(cache, buffer.getvalue())
+
+
+def read_events(cache: Path) -> tuple[dict, list, Trajectory, dict[int, np.ndarray]]:
+    """``(document, [(event, keyframe poses)], final trajectory, final keyframe poses)`` of :func:`write_events`."""
+    with np.load(cache, allow_pickle=False) as data:
+        document = json.loads(data["document"].tobytes().decode())
+        events = []
+        for number, fields in enumerate(document["events"]):
+            event = KeyframeEvent(**fields, **{name: data[f"event{number}_{name}"] for name in ARRAY_FIELDS})
+            events.append((event, dict(zip(data[f"event{number}_keyframe_ids"].tolist(), data[f"event{number}_keyframe_poses"]))))
+        trajectory = Trajectory(data["trajectory_timestamps_s"], data["trajectory_world_from_camera"])
+        final_poses = dict(zip(data["final_keyframe_ids"].tolist(), data["final_keyframe_poses"]))
+    return document, events, trajectory, final_poses
 
 
 def replay(cache: Path, overrides: list[str], preset: Path | None, ground_truth_poses: bool, per_frame: bool,
            tracked_frames: list[int]) -> dict:
-    data = pickle.loads(cache.read_bytes())
+    document, events, estimated, final_keyframe_poses = read_events(cache)
     config = load_config(preset, overrides)
-    sequence = open_sequence(Path(data["sequence_dir"]), max_frames=data["max_frames"] or None)
-    result = data["result"]
+    sequence = open_sequence(Path(document["sequence_dir"]), max_frames=document["max_frames"] or None)
     truth = ground_truth_per_frame(sequence)
-    estimate = result.trajectory.world_from_camera
+    estimate = estimated.world_from_camera
     truth_from_estimate = umeyama_se3(estimate[:, :3, 3], truth[:, :3, 3])
-    keyframe_frames = result.keyframe_frame_indices
+    keyframe_frames = {int(key): index for key, index in document["keyframe_frame_indices"].items()}
     frame_poses = truth if ground_truth_poses else estimate
-    trajectory = Trajectory(result.trajectory.timestamps_s, frame_poses)
+    trajectory = Trajectory(estimated.timestamps_s, frame_poses)
     run_log = RunLog(cache.with_suffix(".replay.log"))
     stage = MappingStage(sequence, config.mapper, config.bridge, run_log, seed=config.seed)
     tracked = []
     started = time.perf_counter()
-    for event, keyframe_poses in data["events"]:
+    for event, keyframe_poses in events:
         if ground_truth_poses:
             event = copy.copy(event)
             event.world_from_camera = truth[event.frame_index]
@@ -106,7 +146,7 @@ def replay(cache: Path, overrides: list[str], preset: Path | None, ground_truth_
         if tracked_frames:
             scores = score_views(stage, stage.rendering_poses(trajectory), tracked_frames)
             tracked.append((event.frame_index, [round(value, 2) for value in scores.psnr_db]))
-    final_poses = {key: truth[keyframe_frames[key]] if ground_truth_poses else pose for key, pose in result.keyframe_poses.items()}
+    final_poses = {key: truth[keyframe_frames[key]] if ground_truth_poses else pose for key, pose in final_keyframe_poses.items()}
     stage.finish(final_poses)
     mapping_s = time.perf_counter() - started
     run_log.close()
@@ -134,7 +174,7 @@ def main() -> None:
     parser.add_argument("command", choices=("record", "replay"))
     parser.add_argument("--sequence", type=Path, default=ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699")
     parser.add_argument("--max-frames", type=int, default=150)
-    parser.add_argument("--cache", type=Path, default=RUNS / "mapping_replay_events.pkl")
+    parser.add_argument("--cache", type=Path, default=RUNS / "mapping_replay_events.npz")
     parser.add_argument("--config", type=Path, help="a preset YAML for replay (default: the dataclass defaults)")
     parser.add_argument("--set", action="append", default=[], help="section.key=value, as reconstruct's --set")
     parser.add_argument("--ground-truth-poses", action="store_true")
