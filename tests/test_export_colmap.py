@@ -13,6 +13,7 @@ import yaml
 from click.testing import CliRunner
 
 from cli import main
+import pipelines.export as export_module
 from pipelines.export import export_run
 from pipelines.reconstruct import reconstruct
 from tambridge.camera import Camera
@@ -401,8 +402,8 @@ def test_bad_input_is_refused_in_one_line_leaving_nothing(run_dir, sequence_dir,
     assert "--frames" in line and not (tmp_path / "c").exists()
 
 
-def test_an_export_that_fails_midway_leaves_nothing(run_dir, sequence_dir, tmp_path):
-    """A colour image missing from the sequence stops the export while it copies images: no folder appears."""
+def test_a_missing_image_is_refused_before_the_export_writes_anything(run_dir, sequence_dir, tmp_path):
+    """The sequence is re-opened, and each listed image checked, before any output folder appears."""
     sequence_copy = tmp_path / "room"
     shutil.copytree(sequence_dir, sequence_copy)
     run = tmp_path / "run"
@@ -410,6 +411,28 @@ def test_an_export_that_fails_midway_leaves_nothing(run_dir, sequence_dir, tmp_p
     _point_run_at(run, sequence_copy)
     victim = open_sequence(sequence_copy).rgb_paths[12]
     victim.unlink()
+    line = _refused([run, "--format", "colmap", "-o", tmp_path / "out", "--frames", "all"], tmp_path)
+    assert victim.name in line and "rgb.txt" in line
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".*partial"))
+
+
+def test_an_export_that_fails_midway_leaves_nothing(run_dir, sequence_dir, tmp_path, monkeypatch):
+    """A colour image that vanishes after the sequence was checked stops the export while it copies images: no
+    folder appears, not even a partial one."""
+    sequence_copy = tmp_path / "room"
+    shutil.copytree(sequence_dir, sequence_copy)
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    _point_run_at(run, sequence_copy)
+    victim = open_sequence(sequence_copy).rgb_paths[12]
+    checked_run = export_module.read_run
+
+    def read_run_then_lose_an_image(folder):
+        record = checked_run(folder)
+        victim.unlink()
+        return record
+
+    monkeypatch.setattr(export_module, "read_run", read_run_then_lose_an_image)
     with pytest.raises(ExportError, match=victim.name):
         export_run(run, tmp_path / "out", "colmap", frames="all")
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".*partial"))
