@@ -120,9 +120,11 @@ def test_projection_kernel_matches_torch_projection(dtype):
     np.testing.assert_array_equal(packed[:, k.DEPTH], screen.depths_m.numpy())
     np.testing.assert_array_equal(packed[:, k.U : k.V + 1], screen.means_px.numpy())
     np.testing.assert_array_equal(packed[:, k.RED : k.RED + 3], screen.rgb.numpy())
+    # 16 ulp: the conic divides by a determinant whose rounding depends on whether LLVM fuses its multiply-adds on
+    # the CPU at hand (4.6 ulp seen on one machine, under 4 on another).
     eps = torch.finfo(dtype).eps
-    np.testing.assert_allclose(packed[:, k.CONIC_A : k.CONIC_C + 1], screen.conics_px.numpy(), rtol=4 * eps, atol=0)
-    np.testing.assert_allclose(packed[:, k.BOUND], screen.bounds_px.numpy(), rtol=4 * eps, atol=0)
+    np.testing.assert_allclose(packed[:, k.CONIC_A : k.CONIC_C + 1], screen.conics_px.numpy(), rtol=16 * eps, atol=0)
+    np.testing.assert_allclose(packed[:, k.BOUND], screen.bounds_px.numpy(), rtol=16 * eps, atol=0)
     np.testing.assert_allclose(packed[:, k.OPACITY], screen.opacity.numpy(), rtol=4 * eps, atol=0)
 
 
