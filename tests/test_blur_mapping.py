@@ -1,6 +1,8 @@
 """Blur-aware mapping: the exposure path (SE(3) interpolation), its render count, and a map fitted to blurred
 frames through it that comes out sharper than one fitted without it."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import scipy.linalg
@@ -11,13 +13,16 @@ from tambridge.bridge.config import BridgeConfig
 from tambridge.config import load_config
 from tambridge.errors import ConfigError
 from tambridge.evaluation.rendering import psnr_db
+from tambridge.frontend.contract import TrackResult
 from tambridge.gaussians.config import MapperConfig
 from tambridge.gaussians.mapper import GaussianMap, ViewImages, render_exposure
 from tambridge.geometry import exp_se3, inverse, poses_along
 from tambridge.io.synthetic import SynthOptions, default_camera, look_at, make_room_scene, render, write_synthetic_sequence
 from tambridge.io.tum import open_sequence
-from tambridge.mapping.stage import blur_exposure_s
+from tambridge.mapping.stage import MappingStage, blur_exposure_s, round_robin
+from tambridge.runlog import RunLog
 from tambridge.threads import TORCH_THREADS, compute_threads
+from tests.test_mapper import GroundTruthFrontend
 
 
 @pytest.fixture(autouse=True)
@@ -125,3 +130,47 @@ def test_the_exposure_comes_from_the_key_else_the_synthetic_camera_file_else_it_
     assert blur_exposure_s(BridgeConfig(enabled=False), blurred) == 0.0
     with pytest.raises(ConfigError, match="bridge.blur_exposure_s"):
         load_config(None, ["bridge.blur_exposure_s=-0.01"])
+
+
+def test_round_robin_gives_each_view_its_steps_in_rounds():
+    assert round_robin([2, 4, 1]) == [0, 1, 2, 0, 1, 1, 1]
+    assert round_robin([3, 3]) == [0, 1] * 3
+    assert round_robin([0, 2]) == [1, 1] and round_robin([]) == []
+
+
+def test_a_view_rendered_over_its_exposure_gets_blur_steps_factor_times_the_steps(synthetic_sequence_dir, tmp_path):
+    """With blur modelling on, each view rendered over more than one sub-pose gets ``blur_steps_factor`` times the
+    online and final Adam steps; a view rendered sharp as many as before (the first, mapped before any tracked
+    neighbour gave it an exposure path)."""
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=13)
+    mapper = dataclasses.replace(MapperConfig(), resolution_scale=0.25, iterations=4, final_iterations_per_view=2,
+                                 sharp_iterations_per_view=0)
+    # Every tracked motion is "blur" at a hundredth of a pixel: each view with a path gets 3 sub-poses.
+    bridge = BridgeConfig(blur_exposure_s=1 / 30, blur_step_px=0.01, blur_max_subposes=3, blur_steps_factor=3)
+    run_log = RunLog(tmp_path / "run.log")
+    stage = MappingStage(sequence, mapper, bridge, run_log)
+    schedules = []
+    optimise = stage.map.optimise
+
+    def recording(camera, views, schedule, exposures=None):
+        schedules.append((len(views), list(schedule)))
+        return optimise(camera, views, schedule, exposures)
+
+    stage.map.optimise = recording
+    frontend = GroundTruthFrontend(sequence.ground_truth, every=6)
+    for index in range(len(sequence)):
+        pose = sequence.ground_truth.world_from_camera[index]
+        is_keyframe = index % 6 == 0
+        stage.on_tracked(TrackResult(index, float(sequence.timestamps_s[index]), pose, True, is_keyframe, 100),
+                         sequence[index])
+        if is_keyframe:
+            stage.on_keyframe(frontend.event(index), sequence[index], dict(frontend.poses))
+    online = [len(schedule) for _, schedule in schedules]
+    stage.finish(dict(frontend.poses))
+    run_log.close()
+    assert [view.frame_index for view in stage.views] == [0, 6, 12]
+    assert online == [4, 12, 12]
+    # By the final pass frame 1's track gave the first view its path too: 2 x 3 steps for every view.
+    assert [stage.subposes[view.frame_index] for view in stage.views] == [3, 3, 3]
+    (count, final), = schedules[len(online):]
+    assert count == 3 and [final.count(row) for row in range(3)] == [6, 6, 6]

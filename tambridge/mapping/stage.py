@@ -354,7 +354,8 @@ class MappingStage:
         self.views.append(view)
         views = [self.posed_images(v, self.images(v.frame_index) if v is not view else images) for v in [view] + window]
         # Every other step on the new view, the others cycle through the earlier overlapping ones.
-        schedule = [0 if k % 2 == 0 or not window else 1 + (k // 2) % len(window) for k in range(self.mapper_config.iterations)]
+        steps = self.mapper_config.iterations * self.steps_factor(view)
+        schedule = [0 if k % 2 == 0 or not window else 1 + (k // 2) % len(window) for k in range(steps)]
         losses = self.map.optimise(self.camera, views, schedule, self.exposures([view] + window))
         self.anchor_exposures()
         removed = self.map.prune(self.camera, world_from_camera)
@@ -364,6 +365,11 @@ class MappingStage:
         logger.info("view %d (frame %d, %s): +%d -%d Gaussians -> %d, window %s, its loss %.4f -> %.4f, %d render(s) "
                     "over its exposure", len(self.views) - 1, view.frame_index, view.selection.value, added, removed,
                     len(self.map), [v.frame_index for v in window], own[0], own[-1], self.subposes.get(view.frame_index, 1))
+
+    def steps_factor(self, view: MappingView) -> int:
+        """``bridge.blur_steps_factor`` for a view whose latest :meth:`view_poses` rendered it over its exposure
+        (more than one sub-pose), else 1."""
+        return self.bridge_config.blur_steps_factor if self.subposes.get(view.frame_index, 1) > 1 else 1
 
     def posed_images(self, view: MappingView, images: ViewImages, camera=None) -> tuple[np.ndarray, ViewImages]:
         """``(poses, images)`` of a view for :meth:`GaussianMap.optimise`: :meth:`view_poses` by ``camera`` (None:
@@ -392,13 +398,13 @@ class MappingStage:
 
     def finish(self, keyframe_poses: dict[int, np.ndarray]) -> None:
         """Move every view to the final keyframe poses, run ``final_iterations_per_view`` more steps on each view
-        (in random order), then the sharpening pass (:meth:`sharpen`), and prune."""
+        (in random order; times :meth:`steps_factor`), then the sharpening pass (:meth:`sharpen`), and prune."""
         with self.run_log.stage("final_refinement"), self.threads():
             self.update_keyframe_poses(keyframe_poses)
             for chunk in self.view_chunks():
                 views = [self.posed_images(v, self.images(v.frame_index)) for v in chunk]
-                self.map.optimise(self.camera, views, list(range(len(chunk))) * self.mapper_config.final_iterations_per_view,
-                                  self.exposures(chunk))
+                steps = [self.mapper_config.final_iterations_per_view * self.steps_factor(v) for v in chunk]
+                self.map.optimise(self.camera, views, round_robin(steps), self.exposures(chunk))
         if self.mapper_config.sharp_iterations_per_view:
             with self.run_log.stage("sharpening"), self.threads():
                 self.sharpen()
@@ -472,6 +478,12 @@ class MappingStage:
         state = dict(state)
         self.map.load_state_dict(state.pop("map"))
         restore_attributes(self, _stage_tensors_to(state, self.device))
+
+
+def round_robin(steps: list[int]) -> list[int]:
+    """A schedule of view indices in which view ``i`` appears ``steps[i]`` times: rounds over the views that have
+    steps left, in order (equal counts: ``list(range(n)) * steps[0]``)."""
+    return [index for round_ in range(max(steps, default=0)) for index, count in enumerate(steps) if round_ < count]
 
 
 def blur_exposure_s(bridge: BridgeConfig, sequence: RgbdSequence) -> float:
