@@ -196,7 +196,7 @@ def summarise(cases: dict[str, dict], sharpness_by_frame: dict[int, float]) -> d
     for name in cases:
         for suffix in ("", "_exported"):
             key = "psnr_db" + suffix
-            if name != "off" and key in summary[name] and key in summary["off"]:
+            if name != "off" and "off" in summary and key in summary[name] and key in summary["off"]:
                 summary[f"gain_db{suffix}_{name}"] = summary[name][key] - summary["off"][key]
                 summary[f"gain_db{suffix}_{name}_sharper_half"] = (summary[name][key + "_sharper_half"]
                                                                    - summary["off"][key + "_sharper_half"])
@@ -216,7 +216,12 @@ def main() -> None:
     parser.add_argument("--oracle", action="store_true",
                         help="synthetic: add a case whose exposure paths come from the true camera path")
     parser.add_argument("--cases", default=None, help="comma-separated subset of the cases to run (default: all)")
+    parser.add_argument("--label", default=None,
+                        help="with one case in --cases: store it under this name beside the entry's other cases (a "
+                             "variant of it, with --set, scored against the same off case)")
     args = parser.parse_args()
+    if args.label and (not args.cases or "," in args.cases):
+        parser.error("--label needs exactly one case in --cases")
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"sequences": {}}
     cases_to_run = dict(CASES) | ({"refine": ["bridge.refine_poses=true"]} if args.refine else {}) \
         | ({"oracle": []} if args.oracle else {})
@@ -240,8 +245,9 @@ def main() -> None:
                 continue
             if args.cases and name not in args.cases.split(","):
                 continue
-            print(f"{key}: bridge {name}", flush=True)
-            cases[name] = run_case(f"{result_key}_{name}", folder,
+            stored = args.label or name
+            print(f"{key}: bridge {stored}", flush=True)
+            cases[stored] = run_case(f"{result_key}_{stored}", folder,
                                    settings_of(sequence_settings) + case_settings + (args.set if name != "off" else []),
                                    max_frames, camera, targets, SYNTHETIC if name == "oracle" else None)
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
