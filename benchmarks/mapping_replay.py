@@ -14,7 +14,8 @@ busy; and the keyframes the mapper asks for where its map lacks coverage, ``mapp
 not recorded: record runs the frontend alone). It prints one JSON line: novel-view and mapping-view PSNR/SSIM at
 full resolution (as metrics.json), the mapping views' position error against ground truth (after an SE(3) alignment of the whole trajectory), seconds
 per stage; ``--per-frame`` adds every novel view's PSNR, ``--track`` the PSNR of some frames after each view
-(forgetting shows there), ``--ground-truth-poses`` maps at the ground-truth poses (the bridge's map points are
+(forgetting shows there), ``--results NAME`` also stores the row under NAME in
+benchmarks/results/mapping_replay.json, ``--ground-truth-poses`` maps at the ground-truth poses (the bridge's map points are
 moved by the same alignment, so pair it with bridge.enabled=false unless the frontend is accurate). On 7-Scenes the ground truth is KinectFusion's depth-camera trajectory and colour is
 not registered to depth: mapping at those poses renders worse than at the ORB poses.
 """
@@ -24,8 +25,11 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import datetime
 import io
 import json
+import os
+import platform
 import sys
 import time
 from pathlib import Path
@@ -38,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 from tambridge.evaluation.mapping import evaluation_frames, score_views  # noqa: E402
 from tambridge.mapping.stage import MappingStage  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
-from tambridge.files import atomic_write_bytes  # noqa: E402
+from tambridge.files import atomic_write_bytes, atomic_write_text  # noqa: E402
 from tambridge.frontend.contract import KeyframeEvent  # noqa: E402
 from tambridge.frontend.factory import make_frontend  # noqa: E402
 from tambridge.geometry import transform_points  # noqa: E402
@@ -47,6 +51,7 @@ from tambridge.runlog import RunLog  # noqa: E402
 from tambridge.trajectory import Trajectory  # noqa: E402
 
 RUNS = ROOT / "benchmarks" / "results" / "runs"
+RESULTS = ROOT / "benchmarks" / "results" / "mapping_replay.json"
 
 
 def umeyama_se3(source_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:
@@ -169,6 +174,17 @@ def replay(cache: Path, overrides: list[str], preset: Path | None, ground_truth_
     return row
 
 
+def store_result(name: str, row: dict, cache: Path) -> None:
+    """Merge ``row`` into :data:`RESULTS` under ``name``, with the date, machine, command and recorded sequence."""
+    results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
+    document = read_events(cache)[0]
+    results[name] = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
+                     "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+                     "command": "python benchmarks/mapping_replay.py " + " ".join(sys.argv[1:]),
+                     "sequence": document["sequence_dir"], "max_frames": document["max_frames"], **row}
+    atomic_write_text(RESULTS, json.dumps(results, indent=1) + "\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("command", choices=("record", "replay"))
@@ -180,12 +196,16 @@ def main() -> None:
     parser.add_argument("--ground-truth-poses", action="store_true")
     parser.add_argument("--per-frame", action="store_true")
     parser.add_argument("--track", default="", help="comma-separated frames scored after every view")
+    parser.add_argument("--results", metavar="NAME", help="replay: store the row under NAME in " + str(RESULTS.relative_to(ROOT)))
     arguments = parser.parse_args()
     if arguments.command == "record":
         record(arguments.sequence, arguments.max_frames, arguments.cache, arguments.set)
     else:
         tracked = [int(value) for value in arguments.track.split(",") if value]
-        replay(arguments.cache, arguments.set, arguments.config, arguments.ground_truth_poses, arguments.per_frame, tracked)
+        row = replay(arguments.cache, arguments.set, arguments.config, arguments.ground_truth_poses, arguments.per_frame,
+                     tracked)
+        if arguments.results:
+            store_result(arguments.results, row, arguments.cache)
 
 
 if __name__ == "__main__":
