@@ -209,10 +209,14 @@ def test_view_refuses_what_is_no_finished_runs_viewer_in_one_line(tmp_path, spla
 
 
 @pytest.mark.slow
-def test_view_command_prints_the_url_serves_the_page_and_stops_on_ctrl_c(splat_run):
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_view_command_prints_the_url_serves_the_page_and_stops_on_ctrl_c(splat_run, signum):
+    """Ctrl-C or a kill stops the server cleanly, also where it was started with SIGINT ignored (as a shell starts
+    a background job)."""
     process = subprocess.Popen([sys.executable, str(ROOT / "cli.py"), "view", str(splat_run)], cwd=ROOT,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env={**os.environ, "PYTHONPATH": str(ROOT)})
+                               env={**os.environ, "PYTHONPATH": str(ROOT)},
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
         url = process.stdout.readline().strip().removeprefix("viewer: ")
         assert url.startswith("http://127.0.0.1:") and url.endswith("/viewer/index.html"), url
@@ -220,7 +224,7 @@ def test_view_command_prints_the_url_serves_the_page_and_stops_on_ctrl_c(splat_r
             assert b'<script src="splats.js"></script>' in response.read()
         with urllib.request.urlopen(url.replace("index.html", "splats.js")) as response:
             assert response.read().startswith(b"window.TAMBRIDGE_VIEW = ")
-        process.send_signal(signal.SIGINT)
+        process.send_signal(signum)
         stdout, stderr = process.communicate(timeout=30)
     finally:
         process.kill()
