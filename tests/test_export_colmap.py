@@ -402,14 +402,19 @@ def test_bad_input_is_refused_in_one_line_leaving_nothing(run_dir, sequence_dir,
     assert "--frames" in line and not (tmp_path / "c").exists()
 
 
-def test_a_missing_image_is_refused_before_the_export_writes_anything(run_dir, sequence_dir, tmp_path):
-    """The sequence is re-opened, and each listed image checked, before any output folder appears."""
+def _copied_run_and_an_image(run_dir, sequence_dir, tmp_path):
+    """A copy of the run pointing at a copy of its sequence, and the path of one of that copy's colour images."""
     sequence_copy = tmp_path / "room"
     shutil.copytree(sequence_dir, sequence_copy)
     run = tmp_path / "run"
     shutil.copytree(run_dir, run)
     _point_run_at(run, sequence_copy)
-    victim = open_sequence(sequence_copy).rgb_paths[12]
+    return run, open_sequence(sequence_copy).rgb_paths[12]
+
+
+def test_a_missing_image_is_refused_before_the_export_writes_anything(run_dir, sequence_dir, tmp_path):
+    """The sequence is re-opened, and each listed image checked, before any output folder appears."""
+    run, victim = _copied_run_and_an_image(run_dir, sequence_dir, tmp_path)
     victim.unlink()
     line = _refused([run, "--format", "colmap", "-o", tmp_path / "out", "--frames", "all"], tmp_path)
     assert victim.name in line and "rgb.txt" in line
@@ -419,12 +424,7 @@ def test_a_missing_image_is_refused_before_the_export_writes_anything(run_dir, s
 def test_an_export_that_fails_midway_leaves_nothing(run_dir, sequence_dir, tmp_path, monkeypatch):
     """A colour image that vanishes after the sequence was checked stops the export while it copies images: no
     folder appears, not even a partial one."""
-    sequence_copy = tmp_path / "room"
-    shutil.copytree(sequence_dir, sequence_copy)
-    run = tmp_path / "run"
-    shutil.copytree(run_dir, run)
-    _point_run_at(run, sequence_copy)
-    victim = open_sequence(sequence_copy).rgb_paths[12]
+    run, victim = _copied_run_and_an_image(run_dir, sequence_dir, tmp_path)
     checked_run = export_module.read_run
 
     def read_run_then_lose_an_image(folder):
