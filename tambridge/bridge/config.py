@@ -56,7 +56,7 @@ class BridgeConfig:
                                        "rendering resolution (px; motion under it: one sharp render)", POSITIVE)
     blur_max_subposes: int = setting(9, "renders per blurred view at most (odd counts keep the view's own pose among "
                                         "them)", at_least(1))
-    blur_steps_factor: int = setting(2, "a view rendered over its exposure (more than one sub-pose) gets this many times "
+    blur_steps_factor: int = setting(4, "a view rendered over its exposure (more than one sub-pose) gets this many times "
                                         "the mapping and final Adam steps: a blurred frame says less about the sharp "
                                         "map per step (1: as many as a sharp view)", at_least(1))
     min_gated_fraction: float = setting(0.05, "below this share of gated pixels (and with no matched points) the "
