@@ -110,8 +110,8 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
 
     mapping_metrics = pipeline.mapping_metrics
 
-    def scoring_both(mapping, tracking, sequence, evaluation, run_log):
-        metrics = mapping_metrics(mapping, tracking, sequence, evaluation, run_log)
+    def scoring_both(mapping, tracking, sequence, evaluation, run_log, exported):
+        metrics = mapping_metrics(mapping, tracking, sequence, evaluation, run_log, exported)
         poses = mapping.rendering_poses(tracking.trajectory)
         novel = evaluation_frames(len(sequence), evaluation.novel_view_every, {v.frame_index for v in mapping.views})
         on = {"psnr": metrics.rendering.novel_views.psnr_db, "ssim": metrics.rendering.novel_views.ssim,

@@ -67,7 +67,8 @@ def test_the_presets_say_what_they_change():
     assert load_config(ROOT / "configs" / "open3d.yaml").frontend.kind is FrontendKind.open3d
     fast, quality = load_config(ROOT / "configs" / "fast.yaml"), load_config(ROOT / "configs" / "quality.yaml")
     assert fast.mapper.resolution_scale == 0.125 < Config().mapper.resolution_scale == quality.mapper.resolution_scale
-    assert Config().mapper.sharp_iterations_per_view < quality.mapper.sharp_iterations_per_view == 8
+    assert Config().mapper.iterations < quality.mapper.iterations == 40
+    assert quality.mesh.voxel_size_m == 0.01 < Config().mesh.voxel_size_m
 
 
 @pytest.mark.parametrize("camera_file", sorted((ROOT / "configs" / "cameras").glob("*.yaml")), ids=lambda path: path.name)
