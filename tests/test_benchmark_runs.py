@@ -1,0 +1,28 @@
+"""Benchmarks that reach into the pipeline (they wrap its stages to score more than a run does) still run against
+it: a short synthetic through ``benchmarks/sharp_splats.py``'s child run."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_sharp_splats_scores_the_map_before_and_after_the_pass_as_the_run_does(synthetic_sequence_dir, tmp_path):
+    out = tmp_path / "run"
+    child = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "sharp_splats.py"), "--child",
+                            str(synthetic_sequence_dir), "default", "20", str(out)],
+                           cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert child.returncode == 0, child.stderr[-3000:]
+    row = json.loads(child.stdout.strip().splitlines()[-1])
+    rendering = json.loads((out / "metrics.json").read_text())["rendering"]
+    # "on" is the run's own map: its scores are metrics.json's, through the exposures and as splats.ply reloads it.
+    assert row["on"]["psnr"] == pytest.approx(rendering["novel_views"]["psnr_db"], abs=1e-9)
+    assert row["on"]["psnr_exp"] == pytest.approx(rendering["novel_views_exported"]["psnr_db"], abs=0.01)
+    # "off" is the same map before the pass: same Gaussians (no densification by default), other colours.
+    assert row["off"]["gaussians"] == row["on"]["gaussians"] and row["off"]["psnr"] != row["on"]["psnr"]
+    assert row["frames"] == 20 and row["sharpening_seconds"] > 0 and 10 < row["off"]["psnr"] < 40
