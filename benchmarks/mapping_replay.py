@@ -127,7 +127,9 @@ def read_events(cache: Path) -> tuple[dict, list, Trajectory, dict[int, np.ndarr
 
 
 def replay(cache: Path, overrides: list[str], preset: Path | None, ground_truth_poses: bool, per_frame: bool,
-           tracked_frames: list[int]) -> dict:
+           tracked_frames: list[int]) -> tuple[dict, dict]:
+    """Replay ``cache``'s keyframe events into a mapping stage built from ``preset`` and ``overrides``; prints and
+    returns the row, with the cache's document (its recorded sequence)."""
     document, events, estimated, final_keyframe_poses = read_events(cache)
     config = load_config(preset, overrides)
     sequence = open_sequence(Path(document["sequence_dir"]), max_frames=document["max_frames"] or None)
@@ -171,13 +173,13 @@ def replay(cache: Path, overrides: list[str], preset: Path | None, ground_truth_
     if tracked:
         row["tracked_psnr_after_each_view"] = tracked
     print(json.dumps(row))
-    return row
+    return document, row
 
 
-def store_result(name: str, row: dict, cache: Path) -> None:
-    """Merge ``row`` into :data:`RESULTS` under ``name``, with the date, machine, command and recorded sequence."""
+def store_result(name: str, row: dict, document: dict) -> None:
+    """Merge ``row`` into :data:`RESULTS` under ``name``, with the date, machine, command and the recorded sequence
+    of ``document`` (the cache's, :func:`read_events`)."""
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
-    document = read_events(cache)[0]
     results[name] = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
                      "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
                      "command": "python benchmarks/mapping_replay.py " + " ".join(sys.argv[1:]),
@@ -202,10 +204,10 @@ def main() -> None:
         record(arguments.sequence, arguments.max_frames, arguments.cache, arguments.set)
     else:
         tracked = [int(value) for value in arguments.track.split(",") if value]
-        row = replay(arguments.cache, arguments.set, arguments.config, arguments.ground_truth_poses, arguments.per_frame,
-                     tracked)
+        document, row = replay(arguments.cache, arguments.set, arguments.config, arguments.ground_truth_poses,
+                               arguments.per_frame, tracked)
         if arguments.results:
-            store_result(arguments.results, row, arguments.cache)
+            store_result(arguments.results, row, document)
 
 
 if __name__ == "__main__":
