@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from tambridge.evaluation.trajectory import evaluate_trajectory
-from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig
+from tambridge.frontend.orb.config import OrbFrontendConfig
 from tambridge.frontend.orb.dense_depth import (
     DenseTerm,
     dense_jacobian_reference,
@@ -14,7 +14,6 @@ from tambridge.frontend.orb.dense_depth import (
     dense_reference,
     dense_residuals_reference,
     dense_samples,
-    nearest_reference,
 )
 from tambridge.frontend.orb.frontend import OrbFrontend
 from tambridge.frontend.orb.pose_estimation import (
@@ -130,37 +129,6 @@ def test_few_matches_and_depth_refine_better_than_the_matches_alone(views):
     np.testing.assert_allclose(dense, twin, atol=1e-9)
     assert np.array_equal(inliers, twin_inliers)
     assert error_cm(dense) < 0.3 < error_cm(alone)
-
-
-def test_nearest_reference_weighs_turns_by_the_scene_depth():
-    """Keyframes 10 cm to the side, 5 cm behind, and in place but turned by 0.1 rad: at 2 m a 0.1 rad turn moves
-    the scene by 20 cm, more than either shift, so the 5 cm one is nearest; at 0.2 m the turn (2 cm) is."""
-    camera_from_world = inverse(look_at(np.array([0.0, 0.0, 1.0]), np.array([2.0, 0.0, 1.0])))
-    world_from_camera = inverse(camera_from_world)
-    world_from_keyframes = np.stack([
-        world_from_camera @ exp_se3(np.array([0.10, 0.0, 0.0, 0.0, 0.0, 0.0])),
-        world_from_camera @ exp_se3(np.array([0.0, 0.0, -0.05, 0.0, 0.0, 0.0])),
-        world_from_camera @ exp_se3(np.array([0.0, 0.0, 0.0, 0.0, 0.1, 0.0])),
-    ])
-    assert nearest_reference(world_from_keyframes, camera_from_world, 2.0) == 1
-    assert nearest_reference(world_from_keyframes, camera_from_world, 0.2) == 2
-    # A tie goes to the first.
-    assert nearest_reference(np.stack([world_from_camera, world_from_camera]), camera_from_world, 1.0) == 0
-
-
-def test_the_depth_term_keeps_the_last_n_keyframes_references(tmp_path):
-    """With ``dense_reference_keyframes`` 3 the frontend holds the depths of the last 3 keyframes, newest last."""
-    folder = tmp_path / "loop"
-    write_synthetic_sequence(folder, SynthOptions(frame_count=30, width=160, height=120))
-    sequence = open_sequence(folder)
-    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False,
-                                                              dense_depth=DenseDepthUse.always, dense_reference_keyframes=3))
-    for frame in sequence:
-        frontend.track(frame)
-    frontend.finish()
-    assert len(frontend.map.keyframes) > 3
-    held = [reference.keyframe_id for reference in frontend._dense_references]
-    assert held == [len(frontend.map.keyframes) - 3 + i for i in range(3)]
 
 
 @pytest.mark.slow

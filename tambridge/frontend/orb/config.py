@@ -80,8 +80,6 @@ class OrbFrontendConfig:
     dense_depth_huber_sigmas: float = setting(2.0, "Huber threshold of the depth term (sigmas)", POSITIVE)
     dense_depth_max_distance_m: float = setting(0.05, "depth samples farther than this from the keyframe's surface "
                                                       "have no residual (m)", POSITIVE)
-    dense_reference_keyframes: int = setting(1, "the depth term's reference is, of the last n keyframes, the one "
-                                                "nearest the motion prior's pose (1: the last keyframe)", at_least(1))
     dense_reference_stride_px: int = setting(4, "the keyframe's vertex and normal maps take every n-th pixel",
                                              at_least(1))
     dense_sample_stride_px: int = setting(16, "the frame's depth samples take every n-th pixel", at_least(1))

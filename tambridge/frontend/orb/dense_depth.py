@@ -95,17 +95,6 @@ def dense_reference(keyframe_id: int, depth_m: np.ndarray, K: np.ndarray, stride
     return DenseReference(keyframe_id, stride, points, normals)
 
 
-def nearest_reference(world_from_keyframes: np.ndarray, camera_from_world: np.ndarray, scene_depth_m: float) -> int:
-    """Index of the keyframe (world_from_keyframes (N, 4, 4)) nearest the pose ``camera_from_world``: by the
-    distance of the camera centres plus the rotation angle between them times ``scene_depth_m``, which is about how
-    far (m) a point at that depth moves in view when the camera turns; ties go to the earliest index."""
-    world_from_camera = inverse(camera_from_world)
-    centre_distances_m = np.linalg.norm(world_from_keyframes[:, :3, 3] - world_from_camera[:3, 3], axis=1)
-    relative_rotations = np.einsum("ji,njk->nik", world_from_camera[:3, :3], world_from_keyframes[:, :3, :3])
-    cos_angles = np.clip((np.trace(relative_rotations, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return int(np.argmin(centre_distances_m + scene_depth_m * np.arccos(cos_angles)))
-
-
 def dense_samples(depth_m: np.ndarray, K: np.ndarray, stride: int, min_depth_m: float, max_depth_m: float) -> np.ndarray:
     """(M, 3) camera-frame points of the valid depths (H, W) on every ``stride``-th pixel."""
     points = _backproject_grid(depth_m, K, stride, min_depth_m, max_depth_m).reshape(-1, 3)

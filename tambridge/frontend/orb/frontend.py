@@ -53,7 +53,7 @@ from tambridge.frontend.orb.local_mapping import (
 )
 from tambridge.frontend.orb.loop_closing import LoopConsistency, close_loop, detect_loop
 from tambridge.frontend.orb.depth_time import colour_from_depth_motion, depth_at_colour_time
-from tambridge.frontend.orb.dense_depth import DenseReference, DenseTerm, dense_reference, dense_samples, nearest_reference
+from tambridge.frontend.orb.dense_depth import DenseReference, DenseTerm, dense_reference, dense_samples
 from tambridge.frontend.orb.map_matching import PoseFix, localise, match_map_points, refine_with_matches
 from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.orb.features import FrameFeatures, OrbExtractor
@@ -114,9 +114,8 @@ class OrbFrontend:
         self._last: _FrameRecord | None = None
         self._motion = np.eye(4)  # current_from_previous camera motion: the constant-velocity prior
         self._reference: Keyframe | None = None
-        # The last dense_reference_keyframes keyframes' depths, oldest first, for the dense depth term (empty with
-        # dense_depth off or before the first keyframe).
-        self._dense_references: list[DenseReference] = []
+        # The last keyframe's depth, for the dense depth term (None with dense_depth off or before the first).
+        self._dense_reference: DenseReference | None = None
         self.frames_with_dense_depth = 0
         self._frames_since_keyframe = 0
         self._keyframe_requested = False
@@ -244,12 +243,12 @@ class OrbFrontend:
             moved = self.extractor.lift(features.keypoints_px, features.octaves, features.descriptors, frame.rgb, depth_m)
         return dataclasses.replace(frame, depth_m=depth_m, depth_timestamp_s=None), moved
 
-    def _dense_term(self, depth_m: np.ndarray | None, matches: int, predicted: np.ndarray) -> DenseTerm | None:
-        """The point-to-plane depth term against the depth of the recent keyframe nearest the ``predicted``
-        camera_from_world, where ``dense_depth`` asks for it (auto: fewer than ``dense_auto_max_matches`` matches
-        or a motion prior turning fast); else None."""
+    def _dense_term(self, depth_m: np.ndarray | None, matches: int) -> DenseTerm | None:
+        """The point-to-plane depth term against the last keyframe's depth, where ``dense_depth`` asks for it
+        (auto: fewer than ``dense_auto_max_matches`` matches or a motion prior turning fast); else None."""
         config = self.config
-        if config.dense_depth == DenseDepthUse.never or not self._dense_references:
+        reference = self._dense_reference
+        if config.dense_depth == DenseDepthUse.never or reference is None:
             return None
         if config.dense_depth == DenseDepthUse.auto:
             cos_angle = np.clip((np.trace(self._motion[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
@@ -257,12 +256,6 @@ class OrbFrontend:
                 return None
         with self._timed("pnp"):
             samples = dense_samples(depth_m, self.K, config.dense_sample_stride_px, config.min_depth_m, config.max_depth_m)
-            reference = self._dense_references[-1]
-            if len(self._dense_references) > 1 and len(samples):
-                # Newest first, so that a tie keeps the last keyframe.
-                candidates = self._dense_references[::-1]
-                world_from_keyframes = np.stack([self.map.keyframes[c.keyframe_id].world_from_camera for c in candidates])
-                reference = candidates[nearest_reference(world_from_keyframes, predicted, float(np.median(samples[:, 2])))]
         self.frames_with_dense_depth += 1
         return DenseTerm(reference, self.map.keyframes[reference.keyframe_id].camera_from_world, samples, self.K,
                          config.dense_depth_weight, config.dense_depth_noise_per_m, config.dense_depth_huber_sigmas,
@@ -282,7 +275,7 @@ class OrbFrontend:
                                                  radius_scale * config.search_radius_px)
         if len(ids) < config.min_inliers // 2:
             return None, np.zeros(0, np.int64)
-        dense = self._dense_term(depth_m, len(ids), predicted)
+        dense = self._dense_term(depth_m, len(ids))
         with self._timed("pnp"):
             # As ORB-SLAM's TrackWithMotionModel: refine from the prior; PnP-RANSAC (about a third of the
             # tracking time) only when the prior leaves too many matches as outliers.
@@ -419,10 +412,8 @@ class OrbFrontend:
         create_points_from_depth(self.map, keyframe, self.config)
         if self.config.dense_depth != DenseDepthUse.never:
             with self._timed("pnp"):
-                kept = self._dense_references[max(0, len(self._dense_references) + 1 - self.config.dense_reference_keyframes):]
-                self._dense_references = kept + [dense_reference(keyframe.id, frame.depth_m, self.K,
-                                                                 self.config.dense_reference_stride_px,
-                                                                 self.config.min_depth_m, self.config.max_depth_m)]
+                self._dense_reference = dense_reference(keyframe.id, frame.depth_m, self.K, self.config.dense_reference_stride_px,
+                                                        self.config.min_depth_m, self.config.max_depth_m)
         self.map.update_covisibility(keyframe, self.config.covisibility_min_shared)
         self._reference = keyframe
         self._frames_since_keyframe = 0
