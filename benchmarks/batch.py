@@ -17,7 +17,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -28,6 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from pipelines.batch import THREAD_VARIABLES  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
@@ -114,7 +114,7 @@ def main() -> None:
     frames = SEQUENCES * arguments.frames
     result = {
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+        "machine": describe_machine(),
         "load_average_1min_at_end": os.getloadavg()[0],
         "command": "python benchmarks/batch.py " + " ".join(sys.argv[1:]),
         "sequences": SEQUENCES, "frames_per_sequence": arguments.frames, "size": arguments.size,

@@ -19,8 +19,6 @@ import argparse
 import dataclasses
 import datetime
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 
@@ -29,6 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.reconstruct import SYNTHETIC_SETTINGS, run_case, synthetic_mapping_scale  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
@@ -110,7 +109,7 @@ def main() -> None:
         print(f"running {arguments.preset}, bridge {'on' if bridge else 'off'} on {folder.name} ...", flush=True)
         rows.append(blur_row(run_case(folder, arguments.preset, bridge, out, None, settings), out, folder))
     print(format_table(rows))
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    machine = describe_machine()
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine,
               "command": " ".join(["python", "benchmarks/blurred_synthetic.py", *sys.argv[1:]]),
               "sequence": {"frames": BLURRED.frame_count, "size": [BLURRED.width, BLURRED.height],

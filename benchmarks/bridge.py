@@ -25,7 +25,6 @@ import argparse
 import contextlib
 import datetime
 import json
-import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -37,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import pipelines.reconstruct as reconstruct_module  # noqa: E402
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.reconstruct import SYNTHETIC_SETTINGS  # noqa: E402
 from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.bridge.view_selection import SHARPER_FRAME  # noqa: E402
@@ -259,7 +259,7 @@ def main() -> None:
                                             "scored_against": "gt_rgb" if has_gt else "inputs",
                                             "cases": cases, "summary": summarise(cases, sharpness_by_frame)}
         results["date"] = datetime.date.today().isoformat()
-        results["machine"] = platform.platform()
+        results["machine"] = describe_machine()
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(RESULTS, json.dumps(results, indent=1) + "\n")
     print_table(results)

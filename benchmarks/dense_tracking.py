@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
@@ -251,7 +251,7 @@ def main() -> None:
     for name, cost in costs.items():
         print(f"  {name}: {cost['samples_per_frame']} samples/frame, sampling {cost['sampling_ms']:.2f} ms, "
               f"kernel {cost['kernel_ms_per_step']:.2f} ms per Gauss-Newton step, keyframe maps {cost['keyframe_maps_ms']:.2f} ms")
-    atomic_write_text(args.output, json.dumps({"machine": platform.node(), "cpus": os.cpu_count(), "overrides": args.set,
+    atomic_write_text(args.output, json.dumps({"machine": describe_machine(), "overrides": args.set,
                                                "rows": rows, "term_cost": costs, "limits": limits}, indent=2) + "\n")
 
 

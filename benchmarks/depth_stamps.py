@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -36,6 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.dense_tracking import SEGMENTS, ground_truth_at, orb_config  # noqa: E402
+from benchmarks.machine import describe_machine  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
 WORST_FRAMES = 12
@@ -173,7 +173,7 @@ def main() -> None:
                 print(f"  {entry['frame']:5d} {entry['t_s']:5.2f} {entry['error_cm']:9.2f} {entry['depth_minus_colour_ms']:16.1f} "
                       f"{entry['speed_m_s']:10.2f} {entry['displacement_mm']:7.2f} {entry['error_along_displacement_mm']:13.2f} "
                       f"{entry['inliers']:8d} {entry['left_after_motion_fit_cm']:17.2f}", flush=True)
-    atomic_write_text(args.output, json.dumps({"machine": platform.node(), "cpus": os.cpu_count(), "rows": rows},
+    atomic_write_text(args.output, json.dumps({"machine": describe_machine(), "rows": rows},
                                               indent=2) + "\n")
 
 

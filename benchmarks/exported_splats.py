@@ -22,8 +22,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import os
-import platform
 import subprocess
 import sys
 import time
@@ -34,6 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
 from tambridge.evaluation.exported import ExportedMap  # noqa: E402
@@ -153,7 +152,7 @@ def main() -> None:
             print(f"running {preset} on {sequence.name} ...", flush=True)
             rows.append(run_case(sequence, preset, arguments.max_frames or None, arguments.set))
     print(format_table(rows))
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    machine = describe_machine()
     command = " ".join(["python", "benchmarks/exported_splats.py", *sys.argv[1:]])
     for row in rows:
         row.update(date=datetime.datetime.now().isoformat(timespec="seconds"), machine=machine, command=command)

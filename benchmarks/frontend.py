@@ -25,7 +25,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -35,6 +34,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.sequences import DATA_FOLDERS, FR1_XYZ, FR1_XYZ_FIRST37, KITCHEN, camera_file_for, find_sequence, merge_rows  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
@@ -153,7 +153,7 @@ def main() -> None:
         return
     folders = [find_sequence(name, args.data) for name in args.sequences]  # all found before any run
     rows = []
-    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    machine = describe_machine()
     command = " ".join(["python", "benchmarks/frontend.py", *sys.argv[1:]])
     for folder in folders:
         camera_file = camera_file_for(folder, registered_colour=not args.unregistered_colour)

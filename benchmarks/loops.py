@@ -25,8 +25,6 @@ import dataclasses
 import datetime
 import functools
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -36,6 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.sequences import DATA_FOLDERS, FR1_XYZ, camera_file_for, find_sequence  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
@@ -176,7 +175,7 @@ def main() -> None:
     summary["nearest_non_covisible_m"] = dict(nearest)
     print(json.dumps(summary, indent=1))
     report = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+              "machine": describe_machine(),
               "command": " ".join(["python", "benchmarks/loops.py", *sys.argv[1:]]),
               "revisit": {"min_gap_s": arguments.min_gap_s, "within_m": arguments.revisit_m,
                           "within_deg": arguments.revisit_deg},

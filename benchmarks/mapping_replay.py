@@ -28,8 +28,6 @@ import dataclasses
 import datetime
 import io
 import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -39,6 +37,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from tambridge.evaluation.mapping import evaluation_frames, score_views  # noqa: E402
 from tambridge.mapping.stage import MappingStage  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
@@ -181,7 +180,7 @@ def store_result(name: str, row: dict, document: dict) -> None:
     of ``document`` (the cache's, :func:`read_events`)."""
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
     results[name] = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
-                     "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+                     "machine": describe_machine(),
                      "command": "python benchmarks/mapping_replay.py " + " ".join(sys.argv[1:]),
                      "sequence": document["sequence_dir"], "max_frames": document["max_frames"], **row}
     atomic_write_text(RESULTS, json.dumps(results, indent=1) + "\n")

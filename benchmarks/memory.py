@@ -18,7 +18,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -27,6 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
@@ -126,7 +126,7 @@ def main() -> None:
         print(f"  peak {rows[-1]['peak_memory_mb']:.0f} MB in {rows[-1]['wall_seconds']:.0f} s", flush=True)
     table = format_table(rows, baseline_mb)
     print(table)
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    machine = describe_machine()
     command = " ".join(["python", "benchmarks/memory.py", *sys.argv[1:]])
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"), "machine": machine, "command": command,
               "sequence": str(arguments.sequence), "baseline_memory_mb": baseline_mb, "rows": rows}

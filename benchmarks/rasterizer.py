@@ -29,13 +29,14 @@ import gc
 import json
 import multiprocessing
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from benchmarks.machine import describe_machine  # noqa: E402
 
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_0-699"
 SOURCE_FRAMES = (0, 10, 20)
@@ -269,8 +270,10 @@ def main() -> None:
 
     report = {
         "started": started,
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "load_average_before": load_before,
-                    "load_average_after": os.getloadavg(), "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY")},
+        "machine": describe_machine(),
+        "load_average_before": load_before,
+        "load_average_after": os.getloadavg(),
+        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
         "data": str(args.data),
         "source_frames": SOURCE_FRAMES,
         "rows": rows,

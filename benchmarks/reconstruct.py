@@ -23,7 +23,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -32,6 +31,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.sequences import DATA_FOLDERS, KITCHEN, camera_file_for, find_sequence, merge_rows  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
@@ -162,7 +162,7 @@ def main() -> None:
     print(table)
     for gain in gains:
         print(f"bridge gain, {gain['sequence']} {gain['preset']}: {gain['novel_psnr_gain_db']:+.2f} dB novel-view PSNR")
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    machine = describe_machine()
     command = " ".join(["python", "benchmarks/reconstruct.py", *sys.argv[1:]])
     date = datetime.datetime.now().isoformat(timespec="seconds")
     rows = [row | {"date": date, "command": command} for row in rows]

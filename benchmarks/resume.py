@@ -17,7 +17,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import signal
 import subprocess
 import sys
@@ -30,6 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from tambridge.checkpoint import checkpoint_path, find_checkpoint  # noqa: E402
 from tambridge.errors import CheckpointError  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
@@ -75,7 +75,7 @@ def main() -> None:
                *(["--camera", str(arguments.camera)] if arguments.camera else [])]
     command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(arguments.sequence)]
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+              "machine": describe_machine(),
               "load_average": os.getloadavg()[0],
               "command": " ".join(["python", "benchmarks/resume.py", *sys.argv[1:]]), "options": options, "kills": []}
     with tempfile.TemporaryDirectory(prefix="tambridge-resume-") as temp:

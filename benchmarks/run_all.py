@@ -25,7 +25,6 @@ import dataclasses
 import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -34,6 +33,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.sequences import DATA_FOLDERS, FR1_XYZ, camera_file_for, find_sequence, merge_rows  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
@@ -165,17 +165,6 @@ def format_table(rows: list[dict]) -> str:
                 cells.append(form.format(value))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
-def describe_machine(gpu: str | None = None) -> str:
-    """CPU model, core count and Python version (and ``gpu``'s name), for the line that says where the table
-    was measured."""
-    model = platform.processor() or platform.machine()
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        names = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines() if line.startswith("model name")]
-        model = names[0] if names else model
-    return f"{model}, {os.cpu_count()} cores, Python {platform.python_version()}" + (f", {gpu}" if gpu else "")
 
 
 def update_results_doc(result: dict) -> None:

@@ -32,8 +32,6 @@ import argparse
 import copy
 import datetime
 import json
-import os
-import platform
 import subprocess
 import sys
 import time
@@ -44,6 +42,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
@@ -251,7 +250,7 @@ def main() -> None:
                            row.get("densify"))
         done = {key(row) for row in rows + fits}
         report = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                  "machine": f"{platform.machine()}, {os.cpu_count()} cores (shared: compare on/off within a row)",
+                  "machine": f"{describe_machine()} (shared: compare on/off within a row)",
                   "cases": [row for row in earlier["cases"] if key(row) not in done] + rows,
                   "fits": [row for row in earlier["fits"] if key(row) not in done] + fits}
         arguments.output.parent.mkdir(parents=True, exist_ok=True)

@@ -16,8 +16,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
-import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -30,6 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.machine import describe_machine  # noqa: E402
 from tambridge.evaluation.metrics import RunMetrics, read_metrics  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
@@ -122,7 +121,7 @@ def main() -> None:
                      f"{row['ate_after_damage_cm']:.2f} |")
     print("\n".join(lines))
     result = {"date": datetime.datetime.now().isoformat(timespec="seconds"),
-              "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+              "machine": describe_machine(),
               "command": " ".join(["python", "benchmarks/tracking_failure.py", *sys.argv[1:]]),
               "sequence": str(arguments.sequence), "no_depth_frames": arguments.no_depth, "black_frames": arguments.black,
               "rows": rows}
