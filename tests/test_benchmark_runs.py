@@ -23,6 +23,8 @@ def test_sharp_splats_scores_the_map_before_and_after_the_pass_as_the_run_does(s
     # "on" is the run's own map: its scores are metrics.json's, through the exposures and as splats.ply reloads it.
     assert row["on"]["psnr"] == pytest.approx(rendering["novel_views"]["psnr_db"], abs=1e-9)
     assert row["on"]["psnr_exp"] == pytest.approx(rendering["novel_views_exported"]["psnr_db"], abs=0.01)
-    # "off" is the same map before the pass: same Gaussians (no densification by default), other colours.
-    assert row["off"]["gaussians"] == row["on"]["gaussians"] and row["off"]["psnr"] != row["on"]["psnr"]
+    # "off" is the map before the pass, pruned as the run prunes after it: the pass adds no Gaussians by default,
+    # but it moves opacities, so the prune may remove a few others.
+    assert abs(row["off"]["gaussians"] - row["on"]["gaussians"]) <= 0.01 * row["off"]["gaussians"]
+    assert row["off"]["psnr"] != row["on"]["psnr"]
     assert row["frames"] == 20 and row["sharpening_seconds"] > 0 and 10 < row["off"]["psnr"] < 40

@@ -54,9 +54,10 @@ class OrbFrontendConfig:
     # surface and it costs accuracy (depth seeds new points either way).
     depth_residuals: bool = setting(True, "each observation with depth adds an inverse-depth residual to bundle "
                                           "adjustment")
-    # TUM's depth images are taken up to 20 ms from their colour images (tambridge/frontend/orb/depth_time.py). Off
-    # by default: on fr1/xyz with the mapping thread it was no better, and it costs tracking time (docs/benchmarks.md).
-    depth_time_compensation: bool = setting(False, "move each frame's depth to its colour image's time with the motion "
+    # TUM's depth images are taken up to 20 ms from their colour images (tambridge/frontend/orb/depth_time.py). On
+    # by default since the dense depth term is always on: without it the term cost accuracy on fr1/xyz's first 37
+    # frames (docs/benchmarks.md).
+    depth_time_compensation: bool = setting(True, "move each frame's depth to its colour image's time with the motion "
                                                    "prior, where the frame's depth has its own timestamp")
     # Matching by projecting local-map points with the motion prior.
     search_radius_px: float = setting(15.0, "radius searched around a projected local-map point (px)", POSITIVE)
@@ -70,9 +71,9 @@ class OrbFrontendConfig:
     min_inliers: int = setting(30, "least PnP inliers of a tracked frame", at_least(4))
     relocalisation_min_inliers: int = setting(50, "least PnP inliers of a relocalised frame", at_least(4))
     # Dense point-to-plane depth term against the last keyframe's depth (tambridge/frontend/orb/dense_depth.py).
-    # auto, not always: always cost accuracy on fr1/xyz's first 37 frames while it helped in fast turns
-    # (docs/benchmarks.md).
-    dense_depth: DenseDepthUse = setting(DenseDepthUse.auto, "add the point-to-plane depth term to motion-only "
+    # always: with the depth moved to the colour time it lowers RPE on fr1/xyz and 7-Scenes and the error in
+    # 7-Scenes' fast turns, and no longer costs fr1/xyz's first 37 frames (docs/benchmarks.md).
+    dense_depth: DenseDepthUse = setting(DenseDepthUse.always, "add the point-to-plane depth term to motion-only "
                                          "refinement: never, auto (few matches or fast turns) or always")
     dense_depth_weight: float = setting(300.0, "total weight of the depth term, in whitened residuals (its samples "
                                                "share it, so ORB's matches lead where they are many)", POSITIVE)
