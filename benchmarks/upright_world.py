@@ -5,8 +5,9 @@
 
 For each run folder (a ``tambridge reconstruct`` output, default ``export.world=upright``): how up was found
 (metrics.json), and, with ``--truth-up AXIS``, the angle between the upright world's z and the ground truth's AXIS
-(the run's orientations rotated onto the truth's). Both estimators are also run on the run's own data, as the run had them in its
-first camera's frame: the accelerometer (where the folder has accelerometer.txt) and the planes of mesh.ply. The
+(the run's orientations rotated onto the truth's). The estimators are also run on the run's own data, as the run had them in its
+first camera's frame: the accelerometer (where the folder has accelerometer.txt), the floor of mesh.ply near the
+accelerometer's up (the run's choice where there is one), and the planes of mesh.ply alone. The
 check that needs no ground truth: the planes of the exported mesh.ply (RANSAC, :func:`dominant_planes`) split into
 floors (normal within 45 degrees of z; their tilt from level) and walls (their lean from plumb), each with its share
 of the mesh's vertices. Prints a table and writes benchmarks/results/upright_world.json.
@@ -27,10 +28,12 @@ sys.path.insert(0, str(ROOT))
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.export.mesh import read_mesh  # noqa: E402
 from tambridge.export.world import (  # noqa: E402
+    FLOOR_NEAR_ACCELEROMETER_DEG,
     FLOOR_WITHIN_DEG,
     camera_up,
     dominant_planes,
     up_from_accelerometer,
+    up_from_floor,
     up_from_planes,
 )
 from tambridge.files import atomic_write_text  # noqa: E402
@@ -86,9 +89,13 @@ def measure(run_dir: Path, truth_up: str | None) -> dict:
     vertices_first = transform_points(first_from_upright, np.asarray(mesh.vertices, np.float64))
     estimates = {}
     accelerometer = find_accelerometer(sequence)
+    mesh_planes = dominant_planes(vertices_first)
     if accelerometer is not None:
         estimates["accelerometer"] = up_from_accelerometer(accelerometer, trajectory_first)
-    planes = up_from_planes(dominant_planes(vertices_first), camera_up(trajectory_first.world_from_camera))
+        floor = up_from_floor(mesh_planes, estimates["accelerometer"], FLOOR_NEAR_ACCELEROMETER_DEG)
+        if floor is not None:
+            estimates["accelerometer_floor"] = floor
+    planes = up_from_planes(mesh_planes, camera_up(trajectory_first.world_from_camera))
     if planes is not None:
         estimates[str(planes[1])] = planes[0]
     estimates["first_camera"] = np.array([0.0, -1.0, 0.0])

@@ -127,6 +127,32 @@ def test_floor_plane_of_the_synthetic_room_gives_up(tilted_sequence):
     assert up_from_planes([], camera_up(poses_first)) is None
 
 
+def test_a_floor_near_the_accelerometers_up_levels_the_world_in_its_place(tilted_sequence):
+    """An accelerometer whose axes are 5 degrees off (as the Kinect's nominal ones on fr1/xyz): the room's floor,
+    within 10 degrees of its up, gives up to within a degree; 15 degrees off, the floor is not taken for it."""
+    from tambridge.io.synthetic import make_room_scene
+
+    _, truth = tilted_sequence
+    first_from_world = inverse(truth.world_from_camera[0])
+    first_camera = Trajectory(truth.timestamps_s, first_from_world @ truth.world_from_camera)
+    points = make_room_scene().sample_surface_m(0.1)
+    visible = points[(points[:, 0] > -0.8) & (points[:, 2] < 2.7)]
+    points_first = visible @ first_from_world[:3, :3].T + first_from_world[:3, 3]
+    expected = true_up_in_first_camera(truth)
+    for off_deg, source in ((5.0, UpSource.accelerometer_floor), (15.0, UpSource.accelerometer)):
+        # A roll of the sensor's axes about the optical axis.
+        axes = exp_se3(np.array([0.0, 0.0, 0.0, 0.0, 0.0, np.radians(off_deg)]))[:3, :3]
+        samples = kinect_samples(truth)
+        misread = AccelerometerSamples(samples.timestamps_s, samples.acceleration_mps2 @ axes.T)
+        world = find_world(ExportWorld.upright, first_camera, misread, points_first)
+        up = world.upright_from_first_camera[2, :3]
+        assert world.up_source == source
+        if source == UpSource.accelerometer_floor:
+            assert angle_deg(up, expected) < 1.0
+        else:
+            assert angle_deg(up, expected) > 10.0
+
+
 def test_splats_render_the_same_in_the_upright_world(tmp_path):
     """splats.ply written in the upright world and rendered at the upright poses shows what the run's own map
     shows at its own poses."""
@@ -181,7 +207,8 @@ def test_run_writes_every_file_in_one_upright_world(tilted_sequence, tmp_path, w
                         progress=False)
     metrics = read_metrics(tmp_path / "upright" / "metrics.json")
     assert metrics.world.frame == "upright"
-    assert metrics.world.up_source == ("accelerometer" if with_accelerometer else "floor_plane")
+    # With the accelerometer the room's floor, which lies near its up, levels the world.
+    assert metrics.world.up_source == ("accelerometer_floor" if with_accelerometer else "floor_plane")
     transform = np.array(metrics.world.upright_from_first_camera)
     up_first_camera = transform[2, :3]
     # The run's first pose is close to (not exactly) the identity: compare in the truth's first camera.

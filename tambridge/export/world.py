@@ -9,9 +9,11 @@ first camera's centre, ``upright_from_first_camera``, takes every exported pose 
   direction made horizontal), so the first view is seen as it was shot, only levelled;
 - the origin stays the first camera's centre.
 
-Up comes from, in this order: the Kinect accelerometer (``accelerometer.txt``, :func:`up_from_accelerometer`),
-else the dominant floor plane of the map, else two wall planes (:func:`up_from_planes`), else the first camera
-(the identity). An identity transform writes every file as given, bit for bit.
+Up comes from, in this order: the map's floor plane where one lies near the Kinect accelerometer's up
+(``accelerometer.txt``, :func:`up_from_accelerometer`: its axes are known only to a few degrees, docs/export.md),
+else that accelerometer's up, else the dominant floor plane of the map, else two wall planes
+(:func:`up_from_planes`), else the first camera (the identity). An identity transform writes every file as given,
+bit for bit.
 """
 
 from __future__ import annotations
@@ -47,6 +49,8 @@ PLANE_MAX_POINTS = 20000
 """Points sampled from the map for the plane search."""
 FLOOR_WITHIN_DEG = 45.0
 """A floor's normal lies within this of the cameras' mean image-up (a handheld camera tilts, rarely by more)."""
+FLOOR_NEAR_ACCELEROMETER_DEG = 10.0
+"""A floor levels the world in place of the accelerometer where its normal lies within this of the accelerometer's up."""
 PARALLEL_WITHIN_DEG = 10.0
 """Planes within this of the floor's normal are levels of it (table tops, shelves) and vote with it."""
 WALLS_APART_DEG = 30.0
@@ -56,6 +60,7 @@ WALLS_APART_DEG = 30.0
 class UpSource(Choice):
     """How the upright world's up was found."""
 
+    accelerometer_floor = "accelerometer_floor"
     accelerometer = "accelerometer"
     floor_plane = "floor_plane"
     wall_planes = "wall_planes"
@@ -173,21 +178,35 @@ def dominant_planes(points_m: np.ndarray, seed: int = 0) -> list[Plane]:
     return planes
 
 
-def up_from_planes(planes: list[Plane], prior_up: np.ndarray) -> tuple[np.ndarray, UpSource] | None:
-    """Unit up (3,) from the map's planes and how, or None.
+def _facing(planes: list[Plane], prior_up: np.ndarray) -> list[np.ndarray]:
+    """The planes' normals turned to the side of unit ``prior_up``."""
+    return [plane.normal if plane.normal @ prior_up >= 0 else -plane.normal for plane in planes]
 
-    The floor is the largest plane whose normal lies within :data:`FLOOR_WITHIN_DEG` of ``prior_up`` (the
-    cameras' mean image-up); up is the inlier-weighted mean normal of it and the planes parallel to it. Without one,
-    the two largest walls (normals far enough apart) give up as their normals' cross product."""
+
+def up_from_floor(planes: list[Plane], prior_up: np.ndarray, within_deg: float) -> np.ndarray | None:
+    """Unit up (3,) from the floor, or None: the largest plane whose normal lies within ``within_deg`` of
+    ``prior_up``; up is the inlier-weighted mean normal of it and the planes parallel to it (table tops, shelves)."""
     prior_up = np.asarray(prior_up, np.float64) / np.linalg.norm(prior_up)
-    normals = [plane.normal if plane.normal @ prior_up >= 0 else -plane.normal for plane in planes]
-    floors = [i for i, normal in enumerate(normals) if normal @ prior_up >= np.cos(np.radians(FLOOR_WITHIN_DEG))]
-    if floors:
-        floor = normals[max(floors, key=lambda i: planes[i].inliers)]
-        level = [i for i, normal in enumerate(normals) if normal @ floor >= np.cos(np.radians(PARALLEL_WITHIN_DEG))]
-        up = sum(planes[i].inliers * normals[i] for i in level)
-        return up / np.linalg.norm(up), UpSource.floor_plane
-    walls = sorted((i for i in range(len(planes)) if i not in floors), key=lambda i: -planes[i].inliers)
+    normals = _facing(planes, prior_up)
+    floors = [i for i, normal in enumerate(normals) if normal @ prior_up >= np.cos(np.radians(within_deg))]
+    if not floors:
+        return None
+    floor = normals[max(floors, key=lambda i: planes[i].inliers)]
+    level = [i for i, normal in enumerate(normals) if normal @ floor >= np.cos(np.radians(PARALLEL_WITHIN_DEG))]
+    up = sum(planes[i].inliers * normals[i] for i in level)
+    return up / np.linalg.norm(up)
+
+
+def up_from_planes(planes: list[Plane], prior_up: np.ndarray) -> tuple[np.ndarray, UpSource] | None:
+    """Unit up (3,) from the map's planes and how, or None: the floor (:func:`up_from_floor` within
+    :data:`FLOOR_WITHIN_DEG` of ``prior_up``, the cameras' mean image-up); without one, the two largest walls
+    (normals far enough apart) give up as their normals' cross product."""
+    prior_up = np.asarray(prior_up, np.float64) / np.linalg.norm(prior_up)
+    up = up_from_floor(planes, prior_up, FLOOR_WITHIN_DEG)
+    if up is not None:
+        return up, UpSource.floor_plane
+    normals = _facing(planes, prior_up)
+    walls = sorted(range(len(planes)), key=lambda i: -planes[i].inliers)
     for first, i in enumerate(walls):
         for j in walls[first + 1:]:
             up = np.cross(normals[i], normals[j])
@@ -214,21 +233,23 @@ def upright_from_up(up: np.ndarray) -> np.ndarray:
 
 def find_world(world: ExportWorld, trajectory: Trajectory, accelerometer: AccelerometerSamples | None,
                surface_points_m: np.ndarray, seed: int = 0) -> WorldFrame:
-    """The exported files' world for ``world``: up from ``accelerometer`` (where given), else from the planes of
-    ``surface_points_m`` (P, 3; mesh vertices or Gaussian means, first-camera world), else the first camera's
-    frame. ``trajectory``: the run's poses (first-camera world)."""
+    """The exported files' world for ``world``: up from the planes of ``surface_points_m`` (P, 3; mesh vertices or
+    Gaussian means, first-camera world) and ``accelerometer`` (where given) as the module docstring orders them, else
+    the first camera's frame. ``trajectory``: the run's poses (first-camera world)."""
     if world == ExportWorld.first_camera:
         return WorldFrame(world, UpSource.first_camera, np.eye(4))
     found = None
+    planes = dominant_planes(surface_points_m, seed)
     if accelerometer is not None:
         up = up_from_accelerometer(accelerometer, trajectory)
         if up is None:
             logger.warning("accelerometer.txt: no sample within %.2f s of a frame; up from the map's planes instead",
                            MAX_SAMPLE_GAP_S)
         else:
-            found = up, UpSource.accelerometer
+            floor = up_from_floor(planes, up, FLOOR_NEAR_ACCELEROMETER_DEG)
+            found = (up, UpSource.accelerometer) if floor is None else (floor, UpSource.accelerometer_floor)
     if found is None:
-        found = up_from_planes(dominant_planes(surface_points_m, seed), camera_up(trajectory.world_from_camera))
+        found = up_from_planes(planes, camera_up(trajectory.world_from_camera))
     if found is None:
         logger.warning("no floor or walls found in the map: the exported files stay in the first camera's frame "
                        "(y down); see docs/export.md")
