@@ -121,7 +121,7 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
             for view, exposure in zip(mapping.views, before["exposures"]):
                 view.exposure = None if exposure is None else ViewExposure.from_state_dict(exposure)
             # As a run without the pass: the final refinement's prune follows the pass.
-            mapping.map.prune(mapping.camera, mapping.view_pose(mapping.views[-1]))
+            mapping.final_prune()
             scores = score_views(mapping, poses, novel).summary()
             off = {"psnr": scores["psnr_db"], "ssim": scores["ssim"], "gaussians": len(mapping.map)}
             rows["off"] = off | as_exported_scores(mapping, poses, novel)

@@ -106,15 +106,21 @@ def test_accelerometer_recovers_up_within_a_degree_of_a_tilted_truth(tilted_sequ
     assert angle_deg(up_from_accelerometer(kinect_samples(truth), first_camera, np.eye(3)), expected) > 30.0
 
 
-def test_floor_plane_of_the_synthetic_room_gives_up(tilted_sequence):
+def room_surface_in_first_camera(truth: Trajectory) -> np.ndarray:
+    """(P, 3) points of the synthetic room's surface ahead of the cameras and below the ceiling, in the truth's
+    first camera frame."""
     from tambridge.io.synthetic import make_room_scene
 
-    _, truth = tilted_sequence
     first_from_world = inverse(truth.world_from_camera[0])
     points = make_room_scene().sample_surface_m(0.1)
-    visible = points[(points[:, 0] > -0.8) & (points[:, 2] < 2.7)]  # the part of the room ahead, below the ceiling
-    points_first = visible @ first_from_world[:3, :3].T + first_from_world[:3, 3]
-    poses_first = first_from_world @ truth.world_from_camera
+    visible = points[(points[:, 0] > -0.8) & (points[:, 2] < 2.7)]
+    return transform_points(first_from_world, visible)
+
+
+def test_floor_plane_of_the_synthetic_room_gives_up(tilted_sequence):
+    _, truth = tilted_sequence
+    points_first = room_surface_in_first_camera(truth)
+    poses_first = inverse(truth.world_from_camera[0]) @ truth.world_from_camera
     planes = dominant_planes(points_first)
     found = up_from_planes(planes, camera_up(poses_first))
     assert found is not None and found[1] == UpSource.floor_plane
@@ -130,14 +136,9 @@ def test_floor_plane_of_the_synthetic_room_gives_up(tilted_sequence):
 def test_a_floor_near_the_accelerometers_up_levels_the_world_in_its_place(tilted_sequence):
     """An accelerometer whose axes are 5 degrees off (as the Kinect's nominal ones on fr1/xyz): the room's floor,
     within 10 degrees of its up, gives up to within a degree; 15 degrees off, the floor is not taken for it."""
-    from tambridge.io.synthetic import make_room_scene
-
     _, truth = tilted_sequence
-    first_from_world = inverse(truth.world_from_camera[0])
-    first_camera = Trajectory(truth.timestamps_s, first_from_world @ truth.world_from_camera)
-    points = make_room_scene().sample_surface_m(0.1)
-    visible = points[(points[:, 0] > -0.8) & (points[:, 2] < 2.7)]
-    points_first = visible @ first_from_world[:3, :3].T + first_from_world[:3, 3]
+    first_camera = Trajectory(truth.timestamps_s, inverse(truth.world_from_camera[0]) @ truth.world_from_camera)
+    points_first = room_surface_in_first_camera(truth)
     expected = true_up_in_first_camera(truth)
     for off_deg, source in ((5.0, UpSource.accelerometer_floor), (15.0, UpSource.accelerometer)):
         # A roll of the sensor's axes about the optical axis.

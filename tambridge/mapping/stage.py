@@ -410,9 +410,13 @@ class MappingStage:
                 self.sharpen()
         if self.views:
             with self.run_log.stage("final_refinement"):
-                removed = self.map.prune(self.camera, self.view_pose(self.views[-1]))
+                removed = self.final_prune()
             logger.info("final refinement: %d steps per view over %d views, %d Gaussians pruned -> %d",
                         self.mapper_config.final_iterations_per_view, len(self.views), removed, len(self.map))
+
+    def final_prune(self) -> int:
+        """The prune that ends :meth:`finish`, seen from the last view; returns how many Gaussians it removed."""
+        return self.map.prune(self.camera, self.view_pose(self.views[-1]))
 
     def view_chunks(self) -> list[list[MappingView]]:
         """The views in random order, a window's worth at a time (bounded memory), for the passes after tracking."""
