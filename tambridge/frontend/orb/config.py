@@ -88,15 +88,6 @@ class OrbFrontendConfig:
                                                "matched ...", NON_NEGATIVE)
     dense_auto_min_rotation_deg: float = setting(2.0, "... or the motion prior turns by more than this per frame "
                                                       "(degrees; 2 = 60 deg/s at 30 frames/s)", NON_NEGATIVE)
-    # Dense photometric term against the last keyframe's intensities (tambridge/frontend/orb/dense_photometric.py).
-    dense_photometric: bool = setting(False, "add the photometric term to motion-only refinement")
-    photometric_weight: float = setting(300.0, "total weight of the photometric term, in whitened residuals", POSITIVE)
-    photometric_sigma: float = setting(0.02, "sigma of a photometric residual (intensity in [0, 1])", POSITIVE)
-    photometric_huber_sigmas: float = setting(1.5, "Huber threshold of the photometric term (sigmas)", POSITIVE)
-    photometric_stride_px: int = setting(4, "the keyframe's photometric points come from every n-th pixel", at_least(1))
-    photometric_min_gradient: float = setting(0.02, "least smoothed intensity gradient of a photometric point "
-                                                    "(per pixel, intensity in [0, 1])", POSITIVE)
-    photometric_max_points: int = setting(2000, "most photometric points per keyframe", at_least(1))
     # Keyframe insertion as ORB-SLAM2's.
     keyframe_tracked_ratio: float = setting(0.75, "a frame tracking fewer than this share of its reference keyframe's "
                                                   "points may become a keyframe", UNIT)

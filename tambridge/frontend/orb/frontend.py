@@ -54,12 +54,6 @@ from tambridge.frontend.orb.local_mapping import (
 from tambridge.frontend.orb.loop_closing import LoopConsistency, close_loop, detect_loop
 from tambridge.frontend.orb.depth_time import colour_from_depth_motion, depth_at_colour_time
 from tambridge.frontend.orb.dense_depth import DenseReference, DenseTerm, dense_reference, dense_samples
-from tambridge.frontend.orb.dense_photometric import (
-    PhotometricReference,
-    PhotometricTerm,
-    photometric_image,
-    photometric_reference,
-)
 from tambridge.frontend.orb.map_matching import PoseFix, localise, match_map_points, refine_with_matches
 from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.orb.features import FrameFeatures, OrbExtractor
@@ -123,8 +117,6 @@ class OrbFrontend:
         # The last keyframe's depth, for the dense depth term (None with dense_depth off or before the first).
         self._dense_reference: DenseReference | None = None
         self.frames_with_dense_depth = 0
-        # The last keyframe's high-gradient pixels, for the photometric term (None with it off or before the first).
-        self._photometric_reference: PhotometricReference | None = None
         self._frames_since_keyframe = 0
         self._keyframe_requested = False
         self._lost_streak = 0
@@ -191,7 +183,7 @@ class OrbFrontend:
         frame, features = self._depth_at_colour_time(frame, features)
         grid = build_keypoint_grid(features.keypoints_px, self.camera.width, self.camera.height)
         radius_scale = 2.0 if self._lost_streak else 1.0
-        fix, in_view = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m, frame.rgb)
+        fix, in_view = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m)
         relocalised = False
         if fix is None or fix.inlier_count < self.config.min_inliers:
             relocalisation = self._relocalise(features, grid)
@@ -269,20 +261,9 @@ class OrbFrontend:
                          config.dense_depth_weight, config.dense_depth_noise_per_m, config.dense_depth_huber_sigmas,
                          config.dense_depth_max_distance_m)
 
-    def _photometric_term(self, rgb: np.ndarray | None) -> PhotometricTerm | None:
-        """The photometric term of ``rgb`` against the last keyframe's intensities, where it is on; else None."""
-        reference = self._photometric_reference
-        if not self.config.dense_photometric or reference is None or rgb is None:
-            return None
-        with self._timed("pnp"):
-            image = photometric_image(rgb)
-        config = self.config
-        return PhotometricTerm(reference, self.map.keyframes[reference.keyframe_id].world_from_camera, image, self.K, config.photometric_weight,
-                               config.photometric_sigma, config.photometric_huber_sigmas)
-
     def _track_local_map(
         self, features: FrameFeatures, grid, predicted: np.ndarray, radius_scale: float,
-        depth_m: np.ndarray | None = None, rgb: np.ndarray | None = None,
+        depth_m: np.ndarray | None = None,
     ) -> tuple[PoseFix | None, np.ndarray]:
         """Two projection searches of the local map (wide with the prior, tight with the refined pose), each
         followed by motion-only refinement (with the dense depth term of ``depth_m`` where it is used)."""
@@ -295,18 +276,16 @@ class OrbFrontend:
         if len(ids) < config.min_inliers // 2:
             return None, np.zeros(0, np.int64)
         dense = self._dense_term(depth_m, len(ids))
-        photometric = self._photometric_term(rgb)
         with self._timed("pnp"):
             # As ORB-SLAM's TrackWithMotionModel: refine from the prior; PnP-RANSAC (about a third of the
             # tracking time) only when the prior leaves too many matches as outliers.
-            fix = refine_with_matches(predicted, features, keypoints, ids, self.map, self.K, config, dense,
-                                        photometric)
+            fix = refine_with_matches(predicted, features, keypoints, ids, self.map, self.K, config, dense)
             if fix.inlier_count < max(config.min_inliers, PRIOR_MIN_INLIER_FRACTION * len(ids)):
                 camera_from_world, _ = solve_pnp_ransac(self.map.points.positions_m[ids], features.keypoints_px[keypoints],
                                                         self.K, predicted, config.pnp_reprojection_px, config.pnp_iterations)
                 if camera_from_world is not None:
                     ransac_fix = refine_with_matches(camera_from_world, features, keypoints, ids, self.map, self.K, config,
-                                                     dense, photometric)
+                                                     dense)
                     fix = ransac_fix if ransac_fix.inlier_count > fix.inlier_count else fix
         with self._timed("matching"):
             keypoints, ids, in_view = match_map_points(self.map, point_ids, fix.camera_from_world, features, grid,
@@ -314,8 +293,7 @@ class OrbFrontend:
         if len(ids) < config.min_inliers // 2:
             return fix, in_view
         with self._timed("pnp"):
-            refined = refine_with_matches(fix.camera_from_world, features, keypoints, ids, self.map, self.K, config, dense,
-                                        photometric)
+            refined = refine_with_matches(fix.camera_from_world, features, keypoints, ids, self.map, self.K, config, dense)
         return refined, in_view
 
     def _relocalise(self, features: FrameFeatures, grid) -> tuple[PoseFix, np.ndarray] | None:
@@ -436,12 +414,6 @@ class OrbFrontend:
             with self._timed("pnp"):
                 self._dense_reference = dense_reference(keyframe.id, frame.depth_m, self.K, self.config.dense_reference_stride_px,
                                                         self.config.min_depth_m, self.config.max_depth_m)
-        if self.config.dense_photometric:
-            with self._timed("pnp"):
-                config = self.config
-                self._photometric_reference = photometric_reference(
-                    keyframe.id, frame.rgb, frame.depth_m, self.K, config.photometric_stride_px,
-                    config.photometric_min_gradient, config.photometric_max_points, config.min_depth_m, config.max_depth_m)
         self.map.update_covisibility(keyframe, self.config.covisibility_min_shared)
         self._reference = keyframe
         self._frames_since_keyframe = 0

@@ -16,7 +16,6 @@ from tambridge.camera import Camera, pinhole_numba
 from tambridge.frontend.orb.matching import KeypointGrid, match_descriptors, search_by_projection
 from tambridge.frontend.orb.features import FrameFeatures
 from tambridge.frontend.orb.dense_depth import DenseTerm
-from tambridge.frontend.orb.dense_photometric import PhotometricTerm
 from tambridge.frontend.orb.pose_estimation import refine_camera_from_world, solve_pnp_ransac
 from tambridge.frontend.orb.reprojection import rgbd_observations
 from tambridge.frontend.orb.slam_map import SlamMap
@@ -148,14 +147,13 @@ def refine_with_matches(
     K: np.ndarray,
     config: OrbFrontendConfig,
     dense: DenseTerm | None = None,
-    photometric: PhotometricTerm | None = None,
 ) -> PoseFix:
     """Motion-only refinement on the matches (and the ``dense`` depth term, if given); the fix keeps the inliers."""
     observations = rgbd_observations(features.keypoints_px[keypoint_indices], features.depth_m[keypoint_indices])
     inv_sigma2 = config.scale_factor ** (-2.0 * features.octaves[keypoint_indices])
     camera_from_world, inliers = refine_camera_from_world(
         camera_from_world, slam_map.points.positions_m[point_ids], observations, inv_sigma2, K, config.depth_noise,
-        dense=dense, photometric=photometric,
+        dense=dense,
     )
     return PoseFix(camera_from_world, keypoint_indices[inliers], point_ids[inliers])
 

@@ -13,11 +13,6 @@ from tambridge.frontend.orb.dense_depth import (
     dense_normal_equations_reference,
     kernel_arguments,
 )
-from tambridge.frontend.orb.dense_photometric import (
-    PhotometricTerm,
-    photometric_kernel_arguments,
-    photometric_normal_equations_numba,
-)
 from tambridge.frontend.orb.reprojection import (
     MIN_DEPTH_M,
     chi2_thresholds,
@@ -145,9 +140,7 @@ def pose_normal_equations_reference(camera_from_world, points_world, observation
 def _refine_camera_from_world_kernel(camera_from_world, points_world, observations, weights, thresholds, rounds,
                                      iterations, fx, fy, cx, cy, reference_from_world, samples, reference_points,
                                      normals, stride, dense_fx, dense_fy, dense_cx, dense_cy, sample_weight, noise,
-                                     huber, max_distance, world_from_photo_reference, photo_points,
-                                     photo_intensities, photo_image, photo_gradient_x, photo_gradient_y, photo_fx,
-                                     photo_fy, photo_cx, photo_cy, photo_sample_weight, photo_sigma, photo_huber):
+                                     huber, max_distance):
     n = points_world.shape[0]
     inliers = np.ones(n, np.bool_)
     none_active = np.zeros(n, np.bool_)
@@ -165,13 +158,6 @@ def _refine_camera_from_world_kernel(camera_from_world, points_world, observatio
                     dense_fx, dense_fy, dense_cx, dense_cy, sample_weight, noise, huber, max_distance)
                 hessian = hessian + dense_hessian
                 gradient = gradient + dense_gradient
-            if photo_points.shape[0] > 0:
-                photo_hessian, photo_gradient, _, _ = photometric_normal_equations_numba(
-                    camera_from_world, world_from_photo_reference, photo_points, photo_intensities, photo_image,
-                    photo_gradient_x, photo_gradient_y, photo_fx, photo_fy, photo_cx, photo_cy, photo_sample_weight,
-                    photo_sigma, photo_huber)
-                hessian = hessian + photo_hessian
-                gradient = gradient + photo_gradient
             try:
                 delta = -np.linalg.solve(hessian + 1e-9 * np.eye(6), gradient)
             except Exception:  # noqa: BLE001 - numba catches no narrower class; a singular system ends the round
@@ -198,7 +184,6 @@ def refine_camera_from_world(
     rounds: int = 4,
     iterations: int = 10,
     dense: DenseTerm | None = None,
-    photometric: PhotometricTerm | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Motion-only refinement: Gauss-Newton on the Huber-robust RGB-D reprojection error (ORB-SLAM's PoseOptimization).
 
@@ -216,7 +201,7 @@ def refine_camera_from_world(
         np.array(camera_from_world, np.float64), np.ascontiguousarray(points_world, np.float64),
         np.ascontiguousarray(observations, np.float64), np.ascontiguousarray(weights, np.float64),
         np.ascontiguousarray(chi2_thresholds(weights), np.float64), rounds, iterations, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
-        *kernel_arguments(dense), *photometric_kernel_arguments(photometric),
+        *kernel_arguments(dense),
     )
     # Frame poses chain (prior = motion @ previous pose): keep the rounding of exp products off SO(3) from growing.
     return orthonormalised(camera_from_world), inliers
