@@ -1,6 +1,8 @@
 """The dense point-to-plane depth term of motion-only refinement: kernel against its twin, the Jacobian against
 finite differences, the refinement with it, and the frontend with it on synthetic sequences."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,9 @@ from tambridge.frontend.orb.dense_depth import (
     dense_jacobian_reference,
     dense_normal_equations,
     dense_normal_equations_reference,
+    dense_pair_jacobian_reference,
+    dense_pair_normal_equations,
+    dense_pair_normal_equations_reference,
     dense_reference,
     dense_residuals_reference,
     dense_samples,
@@ -149,3 +154,37 @@ def test_fast_rotation_bursts_are_tracked(tmp_path):
     errors = evaluate_trajectory(final.trajectory, sequence.ground_truth, align="se3")
     assert errors.ate_rmse_m < 0.017
     assert errors.ate_max_m < 0.05
+
+
+def test_pair_kernel_matches_its_twin_and_holds_the_motion_only_term(views):
+    """Bundle adjustment's form of the term, both poses variable: the camera's block is motion-only's system."""
+    term = make_term(views, huber=1.0)
+    camera_from_world = perturbed(inverse(views[2]), 0.01, seed=3)
+    reference_from_world = perturbed(inverse(views[0]), 0.005, seed=4)
+    hessian, gradient, cost, count = dense_pair_normal_equations(camera_from_world, reference_from_world, term)
+    twin = dense_pair_normal_equations_reference(camera_from_world, reference_from_world, term)
+    assert count == twin[3] > 0.5 * len(term.samples_camera_m)
+    np.testing.assert_allclose(hessian, twin[0], rtol=1e-9, atol=1e-9 * np.abs(twin[0]).max())
+    np.testing.assert_allclose(gradient, twin[1], rtol=1e-9, atol=1e-9 * np.abs(twin[1]).max())
+    assert cost == pytest.approx(twin[2], rel=1e-9)
+    moved = dataclasses.replace(term, reference_from_world=reference_from_world)
+    motion_only = dense_normal_equations(camera_from_world, moved)
+    np.testing.assert_allclose(hessian[:6, :6], motion_only[0], rtol=1e-12)
+    np.testing.assert_allclose(gradient[:6], motion_only[1], rtol=1e-12)
+
+
+def test_pair_jacobian_of_the_reference_matches_finite_differences(views):
+    term = dataclasses.replace(make_term(views), reference_from_world=perturbed(inverse(views[0]), 0.005, seed=5))
+    camera_from_world = perturbed(inverse(views[2]), 0.01, seed=6)
+    jacobian = dense_pair_jacobian_reference(camera_from_world, term)
+    _, _, associated, normals = dense_residuals_reference(camera_from_world, term)
+    step = 1e-6
+    for axis in range(6):
+        delta = np.zeros(6)
+        delta[axis] = step
+        plus, minus = (dense_residuals_reference(camera_from_world, dataclasses.replace(
+            term, reference_from_world=exp_se3(sign * delta) @ term.reference_from_world)) for sign in (1.0, -1.0))
+        same = associated & plus[2] & minus[2] & np.all(plus[3] == normals, axis=1) & np.all(minus[3] == normals, axis=1)
+        assert same.mean() > 0.5
+        numeric = (plus[0] - minus[0]) / (2 * step)
+        np.testing.assert_allclose(jacobian[same, 6 + axis], numeric[same], atol=1e-6)

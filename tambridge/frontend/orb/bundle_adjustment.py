@@ -18,6 +18,7 @@ import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
 from tambridge.camera import pinhole_inverse_depth_numba
+from tambridge.frontend.orb.dense_depth import DenseTerm, dense_pair_normal_equations
 from tambridge.frontend.orb.reprojection import (
     MIN_DEPTH_M,
     chi2_thresholds,
@@ -55,6 +56,9 @@ class BundleProblem:
     fixed_cameras: np.ndarray
     K: np.ndarray
     depth_noise_per_m: float
+    # Point-to-plane depth edges between cameras (tambridge/frontend/orb/dense_depth.py): each pairs a camera's
+    # depth samples with another camera's vertex and normal maps.
+    depth_pairs: tuple[DepthPair, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.observation_camera)
@@ -62,6 +66,39 @@ class BundleProblem:
         assert self.points_world.ndim == 2 and self.points_world.shape[1] == 3, self.points_world.shape
         assert self.observation_point.shape == (n,) and self.observations.shape == (n, 3), self.observations.shape
         assert self.inv_sigma2.shape == (n,) and self.fixed_cameras.shape == (len(self.camera_from_world),)
+
+
+@dataclasses.dataclass
+class DepthPair:
+    """The dense depth term of camera ``camera``'s depth samples against camera ``reference``'s depth: ``term``
+    holds both (its ``reference_from_world`` is ignored: the problem's pose of ``reference`` is used)."""
+
+    camera: int
+    reference: int
+    term: DenseTerm
+
+
+def _pairs_cost(pairs, camera_from_world: np.ndarray) -> float:
+    """0.5 * the depth edges' robust cost (the BA cost's convention)."""
+    return 0.5 * sum(dense_pair_normal_equations(camera_from_world[pair.camera], camera_from_world[pair.reference],
+                                                 pair.term)[2] for pair in pairs)
+
+
+def _add_pairs(pairs, camera_from_world, variable_index, h_cc, b_c):
+    """Adds the depth edges' diagonal blocks to ``h_cc``, ``b_c`` in place; returns their off-diagonal blocks
+    ``[(va, vb, H_ab (6, 6))]`` between two variable cameras."""
+    off_diagonal = []
+    for pair in pairs:
+        hessian, gradient, _, _ = dense_pair_normal_equations(camera_from_world[pair.camera],
+                                                              camera_from_world[pair.reference], pair.term)
+        index = (variable_index[pair.camera], variable_index[pair.reference])
+        for side, v in enumerate(index):
+            if v >= 0:
+                h_cc[v] += hessian[6 * side:6 * side + 6, 6 * side:6 * side + 6]
+                b_c[v] -= gradient[6 * side:6 * side + 6]
+        if index[0] >= 0 and index[1] >= 0:
+            off_diagonal.append((index[0], index[1], hessian[:6, 6:]))
+    return off_diagonal
 
 
 @dataclasses.dataclass(frozen=True)
@@ -290,14 +327,14 @@ def _evaluate(problem: BundleProblem, camera_from_world, points_world, weights, 
 
 
 def bundle_cost(problem: BundleProblem, camera_from_world=None, points_world=None, robust=False) -> float:
-    """``0.5 * sum(rho(chi2))`` at the given (default: the problem's) cameras and points."""
+    """``0.5 * sum(rho(chi2))`` at the given (default: the problem's) cameras and points, plus the depth edges'
+    (always robust) cost."""
     weights = row_weights(problem.observations, problem.inv_sigma2, problem.depth_noise_per_m)
+    camera_from_world = problem.camera_from_world if camera_from_world is None else camera_from_world
     return _evaluate(
-        problem,
-        problem.camera_from_world if camera_from_world is None else camera_from_world,
-        problem.points_world if points_world is None else points_world,
+        problem, camera_from_world, problem.points_world if points_world is None else points_world,
         weights, chi2_thresholds(weights), robust,
-    )[0]
+    )[0] + _pairs_cost(problem.depth_pairs, camera_from_world)
 
 
 def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = BundleOptions()) -> BundleSolution:
@@ -316,7 +353,8 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
     order = order[np.argsort(problem.observation_point[order], kind="stable")]
     point_start = np.searchsorted(problem.observation_point[order], np.arange(len(points_world) + 1))
 
-    cost, _ = _evaluate(problem, camera_from_world, points_world, weights, thresholds, options.robust)
+    cost = _evaluate(problem, camera_from_world, points_world, weights, thresholds, options.robust)[0] \
+        + _pairs_cost(problem.depth_pairs, camera_from_world)
     initial_cost = cost
     damping = options.initial_damping
     iteration = 0
@@ -326,10 +364,14 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
             points_world, problem.observation_camera, problem.observation_point, problem.observations, weights,
             thresholds, options.robust, variable_index, n_variable, *_intrinsics(problem.K),
         )
+        off_diagonal = _add_pairs(problem.depth_pairs, camera_from_world, variable_index, h_cc, b_c)
         improved = False
         for _ in range(10):
             reduced, rhs, h_pp_inverse = _reduced_system(h_cc, b_c, h_pp, b_p, h_cp, damping,
                                                           problem.observation_point, obs_variable, point_start, order)
+            for va, vb, block in off_diagonal:
+                reduced[6 * va:6 * va + 6, 6 * vb:6 * vb + 6] += block
+                reduced[6 * vb:6 * vb + 6, 6 * va:6 * va + 6] += block.T
             if n_variable:
                 with _THREADPOOLS.limit(limits=1, user_api="blas"):
                     try:
@@ -343,7 +385,8 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
             for camera in np.flatnonzero(variable_index >= 0):
                 candidate_cameras[camera] = exp_se3(delta_cameras[variable_index[camera]]) @ camera_from_world[camera]
             candidate_points = points_world + delta_points
-            candidate_cost, _ = _evaluate(problem, candidate_cameras, candidate_points, weights, thresholds, options.robust)
+            candidate_cost = _evaluate(problem, candidate_cameras, candidate_points, weights, thresholds, options.robust)[0] \
+                + _pairs_cost(problem.depth_pairs, candidate_cameras)
             if candidate_cost < cost:
                 relative_decrease = (cost - candidate_cost) / max(cost, 1e-300)
                 camera_from_world, points_world = candidate_cameras, candidate_points

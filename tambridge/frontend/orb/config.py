@@ -88,6 +88,14 @@ class OrbFrontendConfig:
                                                "matched ...", NON_NEGATIVE)
     dense_auto_min_rotation_deg: float = setting(2.0, "... or the motion prior turns by more than this per frame "
                                                       "(degrees; 2 = 60 deg/s at 30 frames/s)", NON_NEGATIVE)
+    # Depth edges between consecutive keyframes in bundle adjustment lower ATE on fr1/xyz and 7-Scenes; heavier
+    # than 1000 they cost 7-Scenes' fast turns and, past 3000, fr1/xyz (docs/benchmarks.md).
+    ba_dense_depth: bool = setting(True, "bundle adjustment ties each keyframe to the previous one by the "
+                                         "point-to-plane depth term")
+    ba_dense_depth_weight: float = setting(1000.0, "total weight of a depth edge in bundle adjustment, in whitened "
+                                                  "residuals", POSITIVE)
+    ba_dense_reference_stride_px: int = setting(8, "a keyframe's vertex and normal maps for bundle adjustment take "
+                                                   "every n-th pixel", at_least(1))
     # Keyframe insertion as ORB-SLAM2's.
     keyframe_tracked_ratio: float = setting(0.75, "a frame tracking fewer than this share of its reference keyframe's "
                                                   "points may become a keyframe", UNIT)

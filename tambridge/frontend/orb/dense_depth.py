@@ -101,15 +101,34 @@ def dense_samples(depth_m: np.ndarray, K: np.ndarray, stride: int, min_depth_m: 
     return np.ascontiguousarray(points[points[:, 2] > 0])
 
 
-@numba.njit(cache=True, nogil=True)
-def dense_normal_equations_numba(camera_from_world, reference_from_world, samples, reference_points, normals, stride,
-                            fx, fy, cx, cy, sample_weight, noise, huber, max_distance):
-    """Point-to-plane Gauss-Newton system ``(H (6, 6), g (6,), cost, associated count)``; see the module docstring."""
-    hessian = np.zeros((6, 6))
-    gradient = np.zeros(6)
-    cost = 0.0
-    count = 0
-    # reference_from_camera = reference_from_world @ inverse(camera_from_world)
+@numba.njit(cache=True, inline="always")
+def _associate(rotation, translation, px, py, pz, reference_points, normals, stride, fx, fy, cx, cy, noise, max_distance):
+    """One sample ``p`` (current camera) against the reference: ``(associated, residual, sigma^2, n, p_ref)``
+    with ``p_ref = rotation @ p + translation`` (reference_from_camera)."""
+    x = rotation[0, 0] * px + rotation[0, 1] * py + rotation[0, 2] * pz + translation[0]
+    y = rotation[1, 0] * px + rotation[1, 1] * py + rotation[1, 2] * pz + translation[1]
+    z = rotation[2, 0] * px + rotation[2, 1] * py + rotation[2, 2] * pz + translation[2]
+    nx, ny, nz = 0.0, 0.0, 0.0
+    if z <= MIN_DEPTH_M:
+        return False, 0.0, 1.0, nx, ny, nz, x, y, z
+    u, v = pinhole_numba(x, y, z, fx, fy, cx, cy)
+    column = int(np.floor(u / stride + 0.5))
+    row = int(np.floor(v / stride + 0.5))
+    if column < 0 or row < 0 or column >= normals.shape[1] or row >= normals.shape[0]:
+        return False, 0.0, 1.0, nx, ny, nz, x, y, z
+    nx, ny, nz = normals[row, column, 0], normals[row, column, 1], normals[row, column, 2]
+    if nx == 0.0 and ny == 0.0 and nz == 0.0:
+        return False, 0.0, 1.0, nx, ny, nz, x, y, z
+    qx, qy, qz = reference_points[row, column, 0], reference_points[row, column, 1], reference_points[row, column, 2]
+    residual = nx * (qx - x) + ny * (qy - y) + nz * (qz - z)
+    if abs(residual) > max_distance:
+        return False, 0.0, 1.0, nx, ny, nz, x, y, z
+    return True, residual, noise * noise * (qz * qz * qz * qz + pz * pz * pz * pz), nx, ny, nz, x, y, z
+
+
+@numba.njit(cache=True, inline="always")
+def _reference_from_camera(camera_from_world, reference_from_world):
+    """Rotation (3, 3) and translation (3,) of ``reference_from_world @ inverse(camera_from_world)``."""
     rotation = np.zeros((3, 3))
     translation = reference_from_world[:3, 3].copy()
     for a in range(3):
@@ -119,35 +138,36 @@ def dense_normal_equations_numba(camera_from_world, reference_from_world, sample
     for a in range(3):
         for b in range(3):
             translation[a] -= rotation[a, b] * camera_from_world[b, 3]
-    height, width = normals.shape[0], normals.shape[1]
+    return rotation, translation
+
+
+@numba.njit(cache=True, inline="always")
+def _huber(whitened2, huber):
+    """``(IRLS factor, robust cost)`` of a whitened squared residual."""
+    if whitened2 > huber * huber:
+        root = np.sqrt(whitened2)
+        return huber / root, 2.0 * huber * root - huber * huber
+    return 1.0, whitened2
+
+
+@numba.njit(cache=True, nogil=True)
+def dense_normal_equations_numba(camera_from_world, reference_from_world, samples, reference_points, normals, stride,
+                            fx, fy, cx, cy, sample_weight, noise, huber, max_distance):
+    """Point-to-plane Gauss-Newton system ``(H (6, 6), g (6,), cost, associated count)``; see the module docstring."""
+    hessian = np.zeros((6, 6))
+    gradient = np.zeros(6)
+    cost = 0.0
+    count = 0
+    rotation, translation = _reference_from_camera(camera_from_world, reference_from_world)
     jacobian = np.zeros(6)
     for i in range(samples.shape[0]):
         px, py, pz = samples[i, 0], samples[i, 1], samples[i, 2]
-        x = rotation[0, 0] * px + rotation[0, 1] * py + rotation[0, 2] * pz + translation[0]
-        y = rotation[1, 0] * px + rotation[1, 1] * py + rotation[1, 2] * pz + translation[1]
-        z = rotation[2, 0] * px + rotation[2, 1] * py + rotation[2, 2] * pz + translation[2]
-        if z <= MIN_DEPTH_M:
+        associated, residual, sigma2, nx, ny, nz, _, _, _ = _associate(
+            rotation, translation, px, py, pz, reference_points, normals, stride, fx, fy, cx, cy, noise, max_distance)
+        if not associated:
             continue
-        u, v = pinhole_numba(x, y, z, fx, fy, cx, cy)
-        column = int(np.floor(u / stride + 0.5))
-        row = int(np.floor(v / stride + 0.5))
-        if column < 0 or row < 0 or column >= width or row >= height:
-            continue
-        nx, ny, nz = normals[row, column, 0], normals[row, column, 1], normals[row, column, 2]
-        if nx == 0.0 and ny == 0.0 and nz == 0.0:
-            continue
-        qx, qy, qz = reference_points[row, column, 0], reference_points[row, column, 1], reference_points[row, column, 2]
-        residual = nx * (qx - x) + ny * (qy - y) + nz * (qz - z)
-        if abs(residual) > max_distance:
-            continue
-        sigma2 = noise * noise * (qz * qz * qz * qz + pz * pz * pz * pz)
-        whitened2 = residual * residual / sigma2
-        kernel = 1.0
-        if whitened2 > huber * huber:
-            kernel = huber / np.sqrt(whitened2)
-            cost += sample_weight * (2.0 * huber * np.sqrt(whitened2) - huber * huber)
-        else:
-            cost += sample_weight * whitened2
+        kernel, robust_cost = _huber(residual * residual / sigma2, huber)
+        cost += sample_weight * robust_cost
         count += 1
         # m = R^T n: the normal in the current camera; J = [m, p x m].
         mx = rotation[0, 0] * nx + rotation[1, 0] * ny + rotation[2, 0] * nz
@@ -161,6 +181,45 @@ def dense_normal_equations_numba(camera_from_world, reference_from_world, sample
             for k in range(j, 6):
                 hessian[j, k] += w * jacobian[j] * jacobian[k]
     for j in range(6):
+        for k in range(j):
+            hessian[j, k] = hessian[k, j]
+    return hessian, gradient, cost, count
+
+
+@numba.njit(cache=True, nogil=True)
+def dense_pair_normal_equations_numba(camera_from_world, reference_from_world, samples, reference_points, normals,
+                                      stride, fx, fy, cx, cy, sample_weight, noise, huber, max_distance):
+    """The term with both poses variable, as bundle adjustment has it: ``(H (12, 12), g (12,), cost, associated
+    count)`` over ``[delta_camera, delta_reference]`` (both left updates of camera_from_world). The reference's
+    Jacobian is ``-[n, p_ref x n]``: moving it by ``exp(delta)`` moves ``p_ref`` by ``rho + phi x p_ref``."""
+    hessian = np.zeros((12, 12))
+    gradient = np.zeros(12)
+    cost = 0.0
+    count = 0
+    rotation, translation = _reference_from_camera(camera_from_world, reference_from_world)
+    jacobian = np.zeros(12)
+    for i in range(samples.shape[0]):
+        px, py, pz = samples[i, 0], samples[i, 1], samples[i, 2]
+        associated, residual, sigma2, nx, ny, nz, x, y, z = _associate(
+            rotation, translation, px, py, pz, reference_points, normals, stride, fx, fy, cx, cy, noise, max_distance)
+        if not associated:
+            continue
+        kernel, robust_cost = _huber(residual * residual / sigma2, huber)
+        cost += sample_weight * robust_cost
+        count += 1
+        mx = rotation[0, 0] * nx + rotation[1, 0] * ny + rotation[2, 0] * nz
+        my = rotation[0, 1] * nx + rotation[1, 1] * ny + rotation[2, 1] * nz
+        mz = rotation[0, 2] * nx + rotation[1, 2] * ny + rotation[2, 2] * nz
+        jacobian[0], jacobian[1], jacobian[2] = mx, my, mz
+        jacobian[3], jacobian[4], jacobian[5] = py * mz - pz * my, pz * mx - px * mz, px * my - py * mx
+        jacobian[6], jacobian[7], jacobian[8] = -nx, -ny, -nz
+        jacobian[9], jacobian[10], jacobian[11] = -(y * nz - z * ny), -(z * nx - x * nz), -(x * ny - y * nx)
+        w = kernel * sample_weight / sigma2
+        for j in range(12):
+            gradient[j] += w * jacobian[j] * residual
+            for k in range(j, 12):
+                hessian[j, k] += w * jacobian[j] * jacobian[k]
+    for j in range(12):
         for k in range(j):
             hessian[j, k] = hessian[k, j]
     return hessian, gradient, cost, count
@@ -182,6 +241,16 @@ def dense_normal_equations(camera_from_world: np.ndarray, term: DenseTerm) -> tu
     """``(H (6, 6), g (6,), robust cost, associated samples)`` of the term at ``camera_from_world``, associations
     made at this pose; the update is ``delta = -H^-1 g`` (with any other term's system added)."""
     return dense_normal_equations_numba(np.ascontiguousarray(camera_from_world, np.float64), *kernel_arguments(term))
+
+
+def dense_pair_normal_equations(camera_from_world: np.ndarray, reference_from_world: np.ndarray,
+                                term: DenseTerm) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """``(H (12, 12), g (12,), robust cost, associated samples)`` of the term with the reference's pose
+    ``reference_from_world`` variable too (``term.reference_from_world`` is not used), over
+    ``[delta_camera, delta_reference]``."""
+    return dense_pair_normal_equations_numba(np.ascontiguousarray(camera_from_world, np.float64),
+                                             np.ascontiguousarray(reference_from_world, np.float64),
+                                             *kernel_arguments(term)[1:])
 
 
 def dense_residuals_reference(camera_from_world: np.ndarray, term: DenseTerm) -> tuple[np.ndarray, ...]:
@@ -231,6 +300,32 @@ def dense_normal_equations_reference(camera_from_world: np.ndarray, term: DenseT
     """Slow twin of :func:`dense_normal_equations`, on whole arrays with :func:`dense_jacobian_reference`."""
     residual, sigma2, associated, _ = dense_residuals_reference(camera_from_world, term)
     jacobian = dense_jacobian_reference(camera_from_world, term)
+    whitened2 = residual**2 / sigma2
+    huber, huber2 = term.huber_sigmas, term.huber_sigmas**2
+    kernel = np.where(whitened2 <= huber2, 1.0, huber / np.sqrt(np.maximum(whitened2, 1e-300)))
+    cost = np.where(whitened2 <= huber2, whitened2, 2.0 * huber * np.sqrt(whitened2) - huber2)
+    weight = np.where(associated, kernel * term.sample_weight / sigma2, 0.0)
+    hessian = np.einsum("n,ni,nj->ij", weight, jacobian, jacobian)
+    gradient = np.einsum("n,ni,n->i", weight, jacobian, residual)
+    return hessian, gradient, float(term.sample_weight * cost[associated].sum()), int(associated.sum())
+
+
+def dense_pair_jacobian_reference(camera_from_world: np.ndarray, term: DenseTerm) -> np.ndarray:
+    """(M, 12) d(residual)/d([delta_camera, delta_reference]) per sample, zero where a sample has no association:
+    the camera's block is :func:`dense_jacobian_reference`; moving the reference by ``exp(delta)`` moves
+    ``p_ref`` by ``rho + phi x p_ref`` with q, n held, so its block is ``-[n, p_ref x n]``."""
+    normals = dense_residuals_reference(camera_from_world, term)[3]
+    points_reference = transform_points(term.reference_from_world @ inverse(camera_from_world), term.samples_camera_m)
+    reference_block = -np.concatenate([normals, np.cross(points_reference, normals)], axis=1)
+    return np.concatenate([dense_jacobian_reference(camera_from_world, term), reference_block], axis=1)
+
+
+def dense_pair_normal_equations_reference(camera_from_world: np.ndarray, reference_from_world: np.ndarray,
+                                          term: DenseTerm) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Slow twin of :func:`dense_pair_normal_equations`, on whole arrays with :func:`dense_pair_jacobian_reference`."""
+    term = dataclasses.replace(term, reference_from_world=reference_from_world)
+    residual, sigma2, associated, _ = dense_residuals_reference(camera_from_world, term)
+    jacobian = dense_pair_jacobian_reference(camera_from_world, term)
     whitened2 = residual**2 / sigma2
     huber, huber2 = term.huber_sigmas, term.huber_sigmas**2
     kernel = np.where(whitened2 <= huber2, 1.0, huber / np.sqrt(np.maximum(whitened2, 1e-300)))

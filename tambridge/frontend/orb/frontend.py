@@ -414,6 +414,14 @@ class OrbFrontend:
             with self._timed("pnp"):
                 self._dense_reference = dense_reference(keyframe.id, frame.depth_m, self.K, self.config.dense_reference_stride_px,
                                                         self.config.min_depth_m, self.config.max_depth_m)
+        if self.config.ba_dense_depth:
+            with self._timed("pnp"):
+                config = self.config
+                keyframe.depth_reference = dense_reference(keyframe.id, frame.depth_m, self.K,
+                                                           config.ba_dense_reference_stride_px, config.min_depth_m,
+                                                           config.max_depth_m)
+                keyframe.depth_samples_m = dense_samples(frame.depth_m, self.K, config.dense_sample_stride_px,
+                                                         config.min_depth_m, config.max_depth_m)
         self.map.update_covisibility(keyframe, self.config.covisibility_min_shared)
         self._reference = keyframe
         self._frames_since_keyframe = 0

@@ -8,7 +8,8 @@ from contextlib import AbstractContextManager, nullcontext
 import numpy as np
 
 from tambridge.camera import Camera
-from tambridge.frontend.orb.bundle_adjustment import BundleOptions, BundleProblem, solve_bundle_adjustment
+from tambridge.frontend.orb.bundle_adjustment import BundleOptions, BundleProblem, DepthPair, solve_bundle_adjustment
+from tambridge.frontend.orb.dense_depth import DenseTerm
 from tambridge.frontend.orb.map_matching import match_map_points
 from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.orb.reprojection import rgbd_observations
@@ -166,6 +167,28 @@ def _inv_sigma2(octaves: np.ndarray, scale_factor: float) -> np.ndarray:
     return scale_factor ** (-2.0 * octaves)
 
 
+def depth_pairs(slam_map: SlamMap, cameras: list[int], variable_ids: set[int], K: np.ndarray,
+                config: OrbFrontendConfig) -> tuple[DepthPair, ...]:
+    """Depth edges of a BA over keyframes ``cameras`` (ids, sorted): each keyframe's depth against the previous
+    live keyframe of its segment, where both are in the problem and one of them moves."""
+    if not config.ba_dense_depth:
+        return ()
+    position = {kf_id: i for i, kf_id in enumerate(cameras)}
+    pairs = []
+    previous = None
+    for keyframe in slam_map.keyframes:
+        if keyframe.culled or keyframe.depth_reference is None:
+            continue
+        if (previous is not None and previous.segment == keyframe.segment and keyframe.id in position
+                and previous.id in position and (keyframe.id in variable_ids or previous.id in variable_ids)):
+            term = DenseTerm(previous.depth_reference, np.eye(4), keyframe.depth_samples_m, K, config.ba_dense_depth_weight,
+                             config.dense_depth_noise_per_m, config.dense_depth_huber_sigmas,
+                             config.dense_depth_max_distance_m)
+            pairs.append(DepthPair(position[keyframe.id], position[previous.id], term))
+        previous = keyframe
+    return tuple(pairs)
+
+
 def adjust_bundle(
     slam_map: SlamMap,
     variable: list[Keyframe],
@@ -212,6 +235,7 @@ def adjust_bundle(
             fixed_cameras=np.array([kf_id not in variable_ids for kf_id in cameras]),
             K=K,
             depth_noise_per_m=config.depth_noise,
+            depth_pairs=depth_pairs(slam_map, cameras, variable_ids, K, config),
         )
     options = BundleOptions(iterations=max(1, iterations // 2))
     solution = solve_bundle_adjustment(problem, options)
@@ -221,6 +245,7 @@ def adjust_bundle(
         problem = BundleProblem(
             solution.camera_from_world, solution.points_world, obs_camera[keep], problem.observation_point[keep],
             problem.observations[keep], problem.inv_sigma2[keep], problem.fixed_cameras, K, config.depth_noise,
+            problem.depth_pairs,
         )
         solution = solve_bundle_adjustment(problem, BundleOptions(iterations=max(1, iterations - options.iterations)))
     with lock:

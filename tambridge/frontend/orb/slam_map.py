@@ -15,6 +15,7 @@ import dataclasses
 
 import numpy as np
 
+from tambridge.frontend.orb.dense_depth import DenseReference
 from tambridge.frontend.orb.matching import distinctive_indices
 from tambridge.frontend.orb.features import FrameFeatures
 from tambridge.geometry import inverse
@@ -41,6 +42,9 @@ class Keyframe:
     covisibility: dict[int, int] = dataclasses.field(default_factory=dict)
     parent: int = -1
     parent_from_camera: np.ndarray | None = None
+    # Its depth for bundle adjustment's depth edges (None where they are off, or once culled).
+    depth_reference: DenseReference | None = None
+    depth_samples_m: np.ndarray | None = None
 
     @property
     def culled(self) -> bool:
@@ -264,6 +268,7 @@ class SlamMap:
         keyframe.covisibility = {}
         seen = keyframe.point_ids[keyframe.point_ids >= 0]
         keyframe.point_ids[:] = -1
+        keyframe.depth_reference = keyframe.depth_samples_m = None
         self.recount_observations()
         points = self.points
         points.bad[seen[points.observations[seen] == 0]] = True
