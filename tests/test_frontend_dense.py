@@ -84,22 +84,27 @@ def test_kernel_matches_its_twin(views):
     assert cost == pytest.approx(cost_ref, rel=1e-9)
 
 
-def test_jacobian_matches_finite_differences(views):
-    term = make_term(views)
-    camera_from_world = perturbed(inverse(views[2]), 0.01, seed=2)
-    jacobian = dense_jacobian_reference(camera_from_world, term)
-    _, _, associated, normals = dense_residuals_reference(camera_from_world, term)
-    step = 1e-6
+def assert_jacobian_matches_finite_differences(jacobian, residuals_at, step=1e-6):
+    """``jacobian`` (M, 6) against central differences of ``residuals_at(delta)`` (dense_residuals_reference's
+    tuple after a step ``delta`` (6,)), on the samples whose association the steps leave as it was."""
+    _, _, associated, normals = residuals_at(np.zeros(6))
     for axis in range(6):
         delta = np.zeros(6)
         delta[axis] = step
-        plus = dense_residuals_reference(exp_se3(delta) @ camera_from_world, term)
-        minus = dense_residuals_reference(exp_se3(-delta) @ camera_from_world, term)
+        plus, minus = residuals_at(delta), residuals_at(-delta)
         # Where the step moved a sample into another cell the residual jumps: compare the others.
         same = associated & plus[2] & minus[2] & np.all(plus[3] == normals, axis=1) & np.all(minus[3] == normals, axis=1)
         assert same.mean() > 0.5
         numeric = (plus[0] - minus[0]) / (2 * step)
         np.testing.assert_allclose(jacobian[same, axis], numeric[same], atol=1e-6)
+
+
+def test_jacobian_matches_finite_differences(views):
+    term = make_term(views)
+    camera_from_world = perturbed(inverse(views[2]), 0.01, seed=2)
+    assert_jacobian_matches_finite_differences(
+        dense_jacobian_reference(camera_from_world, term),
+        lambda delta: dense_residuals_reference(exp_se3(delta) @ camera_from_world, term))
 
 
 def test_residuals_vanish_at_the_true_pose_and_grow_away_from_it(views):
@@ -176,15 +181,7 @@ def test_pair_kernel_matches_its_twin_and_holds_the_motion_only_term(views):
 def test_pair_jacobian_of_the_reference_matches_finite_differences(views):
     term = dataclasses.replace(make_term(views), reference_from_world=perturbed(inverse(views[0]), 0.005, seed=5))
     camera_from_world = perturbed(inverse(views[2]), 0.01, seed=6)
-    jacobian = dense_pair_jacobian_reference(camera_from_world, term)
-    _, _, associated, normals = dense_residuals_reference(camera_from_world, term)
-    step = 1e-6
-    for axis in range(6):
-        delta = np.zeros(6)
-        delta[axis] = step
-        plus, minus = (dense_residuals_reference(camera_from_world, dataclasses.replace(
-            term, reference_from_world=exp_se3(sign * delta) @ term.reference_from_world)) for sign in (1.0, -1.0))
-        same = associated & plus[2] & minus[2] & np.all(plus[3] == normals, axis=1) & np.all(minus[3] == normals, axis=1)
-        assert same.mean() > 0.5
-        numeric = (plus[0] - minus[0]) / (2 * step)
-        np.testing.assert_allclose(jacobian[same, 6 + axis], numeric[same], atol=1e-6)
+    assert_jacobian_matches_finite_differences(
+        dense_pair_jacobian_reference(camera_from_world, term)[:, 6:],
+        lambda delta: dense_residuals_reference(camera_from_world, dataclasses.replace(
+            term, reference_from_world=exp_se3(delta) @ term.reference_from_world)))

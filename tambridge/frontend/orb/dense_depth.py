@@ -151,18 +151,20 @@ def _huber(whitened2, huber):
 
 
 @numba.njit(cache=True, nogil=True)
-def dense_normal_equations_numba(camera_from_world, reference_from_world, samples, reference_points, normals, stride,
-                            fx, fy, cx, cy, sample_weight, noise, huber, max_distance):
-    """Point-to-plane Gauss-Newton system ``(H (6, 6), g (6,), cost, associated count)``; see the module docstring."""
-    hessian = np.zeros((6, 6))
-    gradient = np.zeros(6)
+def _dense_system(camera_from_world, reference_from_world, samples, reference_points, normals, stride, fx, fy, cx, cy,
+                  sample_weight, noise, huber, max_distance, with_reference):
+    """Point-to-plane Gauss-Newton system over the camera's update (size 6) or, ``with_reference``, over
+    ``[delta_camera, delta_reference]`` (size 12): ``(H, g, cost, associated count)``."""
+    size = 12 if with_reference else 6
+    hessian = np.zeros((size, size))
+    gradient = np.zeros(size)
     cost = 0.0
     count = 0
     rotation, translation = _reference_from_camera(camera_from_world, reference_from_world)
-    jacobian = np.zeros(6)
+    jacobian = np.zeros(size)
     for i in range(samples.shape[0]):
         px, py, pz = samples[i, 0], samples[i, 1], samples[i, 2]
-        associated, residual, sigma2, nx, ny, nz, _, _, _ = _associate(
+        associated, residual, sigma2, nx, ny, nz, x, y, z = _associate(
             rotation, translation, px, py, pz, reference_points, normals, stride, fx, fy, cx, cy, noise, max_distance)
         if not associated:
             continue
@@ -175,54 +177,27 @@ def dense_normal_equations_numba(camera_from_world, reference_from_world, sample
         mz = rotation[0, 2] * nx + rotation[1, 2] * ny + rotation[2, 2] * nz
         jacobian[0], jacobian[1], jacobian[2] = mx, my, mz
         jacobian[3], jacobian[4], jacobian[5] = py * mz - pz * my, pz * mx - px * mz, px * my - py * mx
+        if with_reference:
+            # Moving the reference by exp(delta) moves p_ref by rho + phi x p_ref: J = -[n, p_ref x n].
+            jacobian[6], jacobian[7], jacobian[8] = -nx, -ny, -nz
+            jacobian[9], jacobian[10], jacobian[11] = -(y * nz - z * ny), -(z * nx - x * nz), -(x * ny - y * nx)
         w = kernel * sample_weight / sigma2
-        for j in range(6):
+        for j in range(size):
             gradient[j] += w * jacobian[j] * residual
-            for k in range(j, 6):
+            for k in range(j, size):
                 hessian[j, k] += w * jacobian[j] * jacobian[k]
-    for j in range(6):
+    for j in range(size):
         for k in range(j):
             hessian[j, k] = hessian[k, j]
     return hessian, gradient, cost, count
 
 
 @numba.njit(cache=True, nogil=True)
-def dense_pair_normal_equations_numba(camera_from_world, reference_from_world, samples, reference_points, normals,
-                                      stride, fx, fy, cx, cy, sample_weight, noise, huber, max_distance):
-    """The term with both poses variable, as bundle adjustment has it: ``(H (12, 12), g (12,), cost, associated
-    count)`` over ``[delta_camera, delta_reference]`` (both left updates of camera_from_world). The reference's
-    Jacobian is ``-[n, p_ref x n]``: moving it by ``exp(delta)`` moves ``p_ref`` by ``rho + phi x p_ref``."""
-    hessian = np.zeros((12, 12))
-    gradient = np.zeros(12)
-    cost = 0.0
-    count = 0
-    rotation, translation = _reference_from_camera(camera_from_world, reference_from_world)
-    jacobian = np.zeros(12)
-    for i in range(samples.shape[0]):
-        px, py, pz = samples[i, 0], samples[i, 1], samples[i, 2]
-        associated, residual, sigma2, nx, ny, nz, x, y, z = _associate(
-            rotation, translation, px, py, pz, reference_points, normals, stride, fx, fy, cx, cy, noise, max_distance)
-        if not associated:
-            continue
-        kernel, robust_cost = _huber(residual * residual / sigma2, huber)
-        cost += sample_weight * robust_cost
-        count += 1
-        mx = rotation[0, 0] * nx + rotation[1, 0] * ny + rotation[2, 0] * nz
-        my = rotation[0, 1] * nx + rotation[1, 1] * ny + rotation[2, 1] * nz
-        mz = rotation[0, 2] * nx + rotation[1, 2] * ny + rotation[2, 2] * nz
-        jacobian[0], jacobian[1], jacobian[2] = mx, my, mz
-        jacobian[3], jacobian[4], jacobian[5] = py * mz - pz * my, pz * mx - px * mz, px * my - py * mx
-        jacobian[6], jacobian[7], jacobian[8] = -nx, -ny, -nz
-        jacobian[9], jacobian[10], jacobian[11] = -(y * nz - z * ny), -(z * nx - x * nz), -(x * ny - y * nx)
-        w = kernel * sample_weight / sigma2
-        for j in range(12):
-            gradient[j] += w * jacobian[j] * residual
-            for k in range(j, 12):
-                hessian[j, k] += w * jacobian[j] * jacobian[k]
-    for j in range(12):
-        for k in range(j):
-            hessian[j, k] = hessian[k, j]
-    return hessian, gradient, cost, count
+def dense_normal_equations_numba(camera_from_world, reference_from_world, samples, reference_points, normals, stride,
+                                 fx, fy, cx, cy, sample_weight, noise, huber, max_distance):
+    """Point-to-plane Gauss-Newton system ``(H (6, 6), g (6,), cost, associated count)``; see the module docstring."""
+    return _dense_system(camera_from_world, reference_from_world, samples, reference_points, normals, stride,
+                         fx, fy, cx, cy, sample_weight, noise, huber, max_distance, False)
 
 
 def kernel_arguments(term: DenseTerm | None) -> tuple:
@@ -248,9 +223,8 @@ def dense_pair_normal_equations(camera_from_world: np.ndarray, reference_from_wo
     """``(H (12, 12), g (12,), robust cost, associated samples)`` of the term with the reference's pose
     ``reference_from_world`` variable too (``term.reference_from_world`` is not used), over
     ``[delta_camera, delta_reference]``."""
-    return dense_pair_normal_equations_numba(np.ascontiguousarray(camera_from_world, np.float64),
-                                             np.ascontiguousarray(reference_from_world, np.float64),
-                                             *kernel_arguments(term)[1:])
+    return _dense_system(np.ascontiguousarray(camera_from_world, np.float64),
+                         np.ascontiguousarray(reference_from_world, np.float64), *kernel_arguments(term)[1:], True)
 
 
 def dense_residuals_reference(camera_from_world: np.ndarray, term: DenseTerm) -> tuple[np.ndarray, ...]:
@@ -298,8 +272,13 @@ def dense_jacobian_reference(camera_from_world: np.ndarray, term: DenseTerm) -> 
 
 def dense_normal_equations_reference(camera_from_world: np.ndarray, term: DenseTerm) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Slow twin of :func:`dense_normal_equations`, on whole arrays with :func:`dense_jacobian_reference`."""
+    return _robust_system(camera_from_world, term, dense_jacobian_reference(camera_from_world, term))
+
+
+def _robust_system(camera_from_world: np.ndarray, term: DenseTerm, jacobian: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """The twins' Huber-weighted Gauss-Newton system of the term's residuals at ``camera_from_world`` with
+    ``jacobian`` (M, n): ``(H (n, n), g (n,), robust cost, associated samples)``."""
     residual, sigma2, associated, _ = dense_residuals_reference(camera_from_world, term)
-    jacobian = dense_jacobian_reference(camera_from_world, term)
     whitened2 = residual**2 / sigma2
     huber, huber2 = term.huber_sigmas, term.huber_sigmas**2
     kernel = np.where(whitened2 <= huber2, 1.0, huber / np.sqrt(np.maximum(whitened2, 1e-300)))
@@ -324,13 +303,4 @@ def dense_pair_normal_equations_reference(camera_from_world: np.ndarray, referen
                                           term: DenseTerm) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Slow twin of :func:`dense_pair_normal_equations`, on whole arrays with :func:`dense_pair_jacobian_reference`."""
     term = dataclasses.replace(term, reference_from_world=reference_from_world)
-    residual, sigma2, associated, _ = dense_residuals_reference(camera_from_world, term)
-    jacobian = dense_pair_jacobian_reference(camera_from_world, term)
-    whitened2 = residual**2 / sigma2
-    huber, huber2 = term.huber_sigmas, term.huber_sigmas**2
-    kernel = np.where(whitened2 <= huber2, 1.0, huber / np.sqrt(np.maximum(whitened2, 1e-300)))
-    cost = np.where(whitened2 <= huber2, whitened2, 2.0 * huber * np.sqrt(whitened2) - huber2)
-    weight = np.where(associated, kernel * term.sample_weight / sigma2, 0.0)
-    hessian = np.einsum("n,ni,nj->ij", weight, jacobian, jacobian)
-    gradient = np.einsum("n,ni,n->i", weight, jacobian, residual)
-    return hessian, gradient, float(term.sample_weight * cost[associated].sum()), int(associated.sum())
+    return _robust_system(camera_from_world, term, dense_pair_jacobian_reference(camera_from_world, term))
