@@ -18,7 +18,7 @@ import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
 from tambridge.camera import pinhole_inverse_depth_numba
-from tambridge.frontend.orb.dense_depth import DenseTerm, dense_pair_normal_equations
+from tambridge.frontend.orb.dense_depth import DenseTerm, dense_normal_equations, dense_pair_normal_equations
 from tambridge.frontend.orb.reprojection import (
     MIN_DEPTH_M,
     chi2_thresholds,
@@ -79,9 +79,10 @@ class DepthPair:
 
 
 def _pairs_cost(pairs, camera_from_world: np.ndarray) -> float:
-    """0.5 * the depth edges' robust cost (the BA cost's convention)."""
-    return 0.5 * sum(dense_pair_normal_equations(camera_from_world[pair.camera], camera_from_world[pair.reference],
-                                                 pair.term)[2] for pair in pairs)
+    """0.5 * the depth edges' robust cost (the BA cost's convention); the camera's system alone has the same cost
+    at a quarter of the pair system's work."""
+    return 0.5 * sum(dense_normal_equations(camera_from_world[pair.camera], dataclasses.replace(
+        pair.term, reference_from_world=camera_from_world[pair.reference]))[2] for pair in pairs)
 
 
 def _add_pairs(pairs, camera_from_world, variable_index, h_cc, b_c):

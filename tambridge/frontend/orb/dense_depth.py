@@ -101,55 +101,6 @@ def dense_samples(depth_m: np.ndarray, K: np.ndarray, stride: int, min_depth_m: 
     return np.ascontiguousarray(points[points[:, 2] > 0])
 
 
-@numba.njit(cache=True, inline="always")
-def _associate(rotation, translation, px, py, pz, reference_points, normals, stride, fx, fy, cx, cy, noise, max_distance):
-    """One sample ``p`` (current camera) against the reference: ``(associated, residual, sigma^2, n, p_ref)``
-    with ``p_ref = rotation @ p + translation`` (reference_from_camera)."""
-    x = rotation[0, 0] * px + rotation[0, 1] * py + rotation[0, 2] * pz + translation[0]
-    y = rotation[1, 0] * px + rotation[1, 1] * py + rotation[1, 2] * pz + translation[1]
-    z = rotation[2, 0] * px + rotation[2, 1] * py + rotation[2, 2] * pz + translation[2]
-    nx, ny, nz = 0.0, 0.0, 0.0
-    if z <= MIN_DEPTH_M:
-        return False, 0.0, 1.0, nx, ny, nz, x, y, z
-    u, v = pinhole_numba(x, y, z, fx, fy, cx, cy)
-    column = int(np.floor(u / stride + 0.5))
-    row = int(np.floor(v / stride + 0.5))
-    if column < 0 or row < 0 or column >= normals.shape[1] or row >= normals.shape[0]:
-        return False, 0.0, 1.0, nx, ny, nz, x, y, z
-    nx, ny, nz = normals[row, column, 0], normals[row, column, 1], normals[row, column, 2]
-    if nx == 0.0 and ny == 0.0 and nz == 0.0:
-        return False, 0.0, 1.0, nx, ny, nz, x, y, z
-    qx, qy, qz = reference_points[row, column, 0], reference_points[row, column, 1], reference_points[row, column, 2]
-    residual = nx * (qx - x) + ny * (qy - y) + nz * (qz - z)
-    if abs(residual) > max_distance:
-        return False, 0.0, 1.0, nx, ny, nz, x, y, z
-    return True, residual, noise * noise * (qz * qz * qz * qz + pz * pz * pz * pz), nx, ny, nz, x, y, z
-
-
-@numba.njit(cache=True, inline="always")
-def _reference_from_camera(camera_from_world, reference_from_world):
-    """Rotation (3, 3) and translation (3,) of ``reference_from_world @ inverse(camera_from_world)``."""
-    rotation = np.zeros((3, 3))
-    translation = reference_from_world[:3, 3].copy()
-    for a in range(3):
-        for b in range(3):
-            for c in range(3):
-                rotation[a, b] += reference_from_world[a, c] * camera_from_world[b, c]
-    for a in range(3):
-        for b in range(3):
-            translation[a] -= rotation[a, b] * camera_from_world[b, 3]
-    return rotation, translation
-
-
-@numba.njit(cache=True, inline="always")
-def _huber(whitened2, huber):
-    """``(IRLS factor, robust cost)`` of a whitened squared residual."""
-    if whitened2 > huber * huber:
-        root = np.sqrt(whitened2)
-        return huber / root, 2.0 * huber * root - huber * huber
-    return 1.0, whitened2
-
-
 @numba.njit(cache=True, nogil=True)
 def _dense_system(camera_from_world, reference_from_world, samples, reference_points, normals, stride, fx, fy, cx, cy,
                   sample_weight, noise, huber, max_distance, with_reference):
@@ -160,16 +111,45 @@ def _dense_system(camera_from_world, reference_from_world, samples, reference_po
     gradient = np.zeros(size)
     cost = 0.0
     count = 0
-    rotation, translation = _reference_from_camera(camera_from_world, reference_from_world)
+    # reference_from_camera = reference_from_world @ inverse(camera_from_world)
+    rotation = np.zeros((3, 3))
+    translation = reference_from_world[:3, 3].copy()
+    for a in range(3):
+        for b in range(3):
+            for c in range(3):
+                rotation[a, b] += reference_from_world[a, c] * camera_from_world[b, c]
+    for a in range(3):
+        for b in range(3):
+            translation[a] -= rotation[a, b] * camera_from_world[b, 3]
+    height, width = normals.shape[0], normals.shape[1]
     jacobian = np.zeros(size)
     for i in range(samples.shape[0]):
         px, py, pz = samples[i, 0], samples[i, 1], samples[i, 2]
-        associated, residual, sigma2, nx, ny, nz, x, y, z = _associate(
-            rotation, translation, px, py, pz, reference_points, normals, stride, fx, fy, cx, cy, noise, max_distance)
-        if not associated:
+        x = rotation[0, 0] * px + rotation[0, 1] * py + rotation[0, 2] * pz + translation[0]
+        y = rotation[1, 0] * px + rotation[1, 1] * py + rotation[1, 2] * pz + translation[1]
+        z = rotation[2, 0] * px + rotation[2, 1] * py + rotation[2, 2] * pz + translation[2]
+        if z <= MIN_DEPTH_M:
             continue
-        kernel, robust_cost = _huber(residual * residual / sigma2, huber)
-        cost += sample_weight * robust_cost
+        u, v = pinhole_numba(x, y, z, fx, fy, cx, cy)
+        column = int(np.floor(u / stride + 0.5))
+        row = int(np.floor(v / stride + 0.5))
+        if column < 0 or row < 0 or column >= width or row >= height:
+            continue
+        nx, ny, nz = normals[row, column, 0], normals[row, column, 1], normals[row, column, 2]
+        if nx == 0.0 and ny == 0.0 and nz == 0.0:
+            continue
+        qx, qy, qz = reference_points[row, column, 0], reference_points[row, column, 1], reference_points[row, column, 2]
+        residual = nx * (qx - x) + ny * (qy - y) + nz * (qz - z)
+        if abs(residual) > max_distance:
+            continue
+        sigma2 = noise * noise * (qz * qz * qz * qz + pz * pz * pz * pz)
+        whitened2 = residual * residual / sigma2
+        kernel = 1.0
+        if whitened2 > huber * huber:
+            kernel = huber / np.sqrt(whitened2)
+            cost += sample_weight * (2.0 * huber * np.sqrt(whitened2) - huber * huber)
+        else:
+            cost += sample_weight * whitened2
         count += 1
         # m = R^T n: the normal in the current camera; J = [m, p x m].
         mx = rotation[0, 0] * nx + rotation[1, 0] * ny + rotation[2, 0] * nz
@@ -178,7 +158,7 @@ def _dense_system(camera_from_world, reference_from_world, samples, reference_po
         jacobian[0], jacobian[1], jacobian[2] = mx, my, mz
         jacobian[3], jacobian[4], jacobian[5] = py * mz - pz * my, pz * mx - px * mz, px * my - py * mx
         if with_reference:
-            # Moving the reference by exp(delta) moves p_ref by rho + phi x p_ref: J = -[n, p_ref x n].
+            # Moving the reference by exp(delta) moves p_ref = (x, y, z) by rho + phi x p_ref: J = -[n, p_ref x n].
             jacobian[6], jacobian[7], jacobian[8] = -nx, -ny, -nz
             jacobian[9], jacobian[10], jacobian[11] = -(y * nz - z * ny), -(z * nx - x * nz), -(x * ny - y * nx)
         w = kernel * sample_weight / sigma2
