@@ -390,17 +390,12 @@ def report(run_dir) -> None:
 def view(run_dir, port) -> None:
     """Serve RUN_DIR's interactive splat viewer (report/viewer/) at http://127.0.0.1:PORT until Ctrl-C or SIGTERM."""
     from pipelines.view import ViewerServer
-    from tambridge.stop import RunStopped, StopRequests
 
     with ViewerServer(run_dir, port) as server:
         click.echo(f"viewer: {server.url}")
         click.echo("serving on 127.0.0.1 only; Ctrl-C to stop")
-        # Own handlers: a shell starts a background job with SIGINT ignored, which Python's Ctrl-C handling keeps.
-        try:
-            with StopRequests():
-                server.serve_forever()
-        except (KeyboardInterrupt, RunStopped):
-            click.echo("stopped")
+        server.serve_until_stopped()
+        click.echo("stopped")
 
 
 @main.command()

@@ -9,11 +9,14 @@ from __future__ import annotations
 import functools
 import http.server
 import logging
+import threading
+import time
 from pathlib import Path
 
 from tambridge.errors import ViewerError
 from tambridge.export.web_viewer import RUN_VIEWER_FOLDER
 from tambridge.run_folder import FINISHED_MARKER
+from tambridge.stop import RunStopped, StopRequests
 
 logger = logging.getLogger("tambridge.pipelines.view")
 
@@ -47,7 +50,7 @@ class _QuietHandler(http.server.SimpleHTTPRequestHandler):
 class ViewerServer(http.server.ThreadingHTTPServer):
     """An HTTP server of one run's ``report/`` folder on 127.0.0.1; ``url`` is the viewer's address.
 
-    Use as a context manager (closes the socket); :meth:`serve_forever` serves until :meth:`shutdown` or Ctrl-C.
+    Use as a context manager (closes the socket); :meth:`serve_until_stopped` serves until SIGINT or SIGTERM.
     """
 
     daemon_threads = True  # a browser's open keep-alive connection must not hold up stopping the server
@@ -65,3 +68,19 @@ class ViewerServer(http.server.ThreadingHTTPServer):
                               "or 0 for a free one") from None
         self.url = f"http://{HOST}:{self.server_address[1]}/{index.relative_to(report_dir).as_posix()}"
         """The viewer page's address."""
+
+    def serve_until_stopped(self) -> None:
+        """Serve until SIGINT (Ctrl-C) or SIGTERM, with tambridge's own handlers: a shell starts a background job
+        with SIGINT ignored, which Python's Ctrl-C handling keeps."""
+        # Requests are served from a thread while this one, where Python runs signal handlers, waits: socketserver
+        # catches any Exception raised while it hands a request over, so a stop raised there would be lost.
+        serving = threading.Thread(target=self.serve_forever, name="tambridge-viewer", daemon=True)
+        try:
+            with StopRequests() as stops, stops.deferred():
+                serving.start()
+                while stops.requested is None:
+                    time.sleep(0.1)
+        except RunStopped:  # a second signal while the first was being noted
+            pass
+        if serving.is_alive():
+            self.shutdown()

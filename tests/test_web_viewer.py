@@ -208,6 +208,27 @@ def test_view_refuses_what_is_no_finished_runs_viewer_in_one_line(tmp_path, spla
         ViewerServer(splat_run, taken.server_address[1])
 
 
+def test_a_signal_that_lands_while_a_request_is_handled_still_stops_the_server(splat_run):
+    """socketserver catches any Exception raised while it hands a request to a thread, and a stop raised by a signal
+    handler there would be lost (CI once saw `tambridge view` keep serving after SIGINT)."""
+    from pipelines.view import ViewerServer
+
+    class SignalledWhileHandling(ViewerServer):
+        def process_request(self, request, client_address):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.2)  # the signal is taken while this request is still being handed over
+            super().process_request(request, client_address)
+
+    with SignalledWhileHandling(splat_run) as server:
+        watchdog = threading.Timer(20.0, server.shutdown)
+        watchdog.start()
+        threading.Thread(target=lambda: urllib.request.urlopen(server.url).read(), daemon=True).start()
+        started = time.monotonic()
+        server.serve_until_stopped()
+        watchdog.cancel()
+    assert time.monotonic() - started < 10.0, "the server served on after SIGTERM"
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_view_command_prints_the_url_serves_the_page_and_stops_on_ctrl_c(splat_run, signum):
