@@ -218,3 +218,26 @@ def test_depth_edges_add_their_cost_to_the_points():
     edge = dense_pair_normal_equations(problem.camera_from_world[3], problem.camera_from_world[2], term)[2]
     assert edge > 0
     assert bundle_cost(with_edge, robust=True) == pytest.approx(bundle_cost(problem, robust=True) + 0.5 * edge, rel=1e-12)
+
+
+@pytest.mark.parametrize("neighbours, expected", [(1, {(2, 1), (4, 3)}), (2, {(2, 1), (2, 0), (4, 3)})])
+def test_depth_edges_tie_a_keyframe_to_its_segments_previous_live_keyframes(neighbours, expected):
+    """Keyframes 0-3 in segment 0 (2 culled), 4-5 in segment 1; keyframes 3-5 move. Edges, as (camera, reference)
+    positions in the problem's sorted camera list, skip the culled one, never cross segments and need a moving end."""
+    from tambridge.frontend.orb.config import OrbFrontendConfig
+    from tambridge.frontend.orb.features import FrameFeatures
+    from tambridge.frontend.orb.local_mapping import depth_pairs
+    from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
+
+    term = room_depth_edge()[2]
+    slam_map = SlamMap()
+    for keyframe_id in range(6):
+        keyframe = Keyframe(keyframe_id, keyframe_id, 0.0, np.eye(4), FrameFeatures.empty(), np.zeros(0, np.int64),
+                            segment=int(keyframe_id >= 4), depth_reference=term.reference,
+                            depth_samples_m=term.samples_camera_m, parent=0 if keyframe_id == 2 else -1)
+        slam_map.keyframes.append(keyframe)
+    config = OrbFrontendConfig(ba_dense_neighbours=neighbours)
+    cameras = [0, 1, 3, 4, 5]
+    pairs = depth_pairs(slam_map, cameras, {3, 4, 5}, term.K, config)
+    assert {(pair.camera, pair.reference) for pair in pairs} == expected
+    assert all(pair.term.weight == config.ba_dense_depth_weight for pair in pairs)

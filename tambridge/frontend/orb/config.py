@@ -94,6 +94,8 @@ class OrbFrontendConfig:
                                          "point-to-plane depth term")
     ba_dense_depth_weight: float = setting(1000.0, "total weight of a depth edge in bundle adjustment, in whitened "
                                                   "residuals", POSITIVE)
+    ba_dense_neighbours: int = setting(1, "bundle adjustment ties each keyframe to this many previous ones of its "
+                                          "segment", at_least(1))
     ba_dense_reference_stride_px: int = setting(8, "a keyframe's vertex and normal maps for bundle adjustment take "
                                                    "every n-th pixel", at_least(1))
     # Keyframe insertion as ORB-SLAM2's.

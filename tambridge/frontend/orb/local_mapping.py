@@ -169,23 +169,26 @@ def _inv_sigma2(octaves: np.ndarray, scale_factor: float) -> np.ndarray:
 
 def depth_pairs(slam_map: SlamMap, cameras: list[int], variable_ids: set[int], K: np.ndarray,
                 config: OrbFrontendConfig) -> tuple[DepthPair, ...]:
-    """Depth edges of a BA over keyframes ``cameras`` (ids, sorted): each keyframe's depth against the previous
-    live keyframe of its segment, where both are in the problem and one of them moves."""
+    """Depth edges of a BA over keyframes ``cameras`` (ids, sorted): each keyframe's depth against each of the
+    ``config.ba_dense_neighbours`` previous live keyframes of its segment, where both are in the problem and one of
+    them moves."""
     if not config.ba_dense_depth:
         return ()
     position = {kf_id: i for i, kf_id in enumerate(cameras)}
     pairs = []
-    previous = None
+    previous: list[Keyframe] = []  # the segment's latest live keyframes, newest last
     for keyframe in slam_map.keyframes:
         if keyframe.culled or keyframe.depth_reference is None:
             continue
-        if (previous is not None and previous.segment == keyframe.segment and keyframe.id in position
-                and previous.id in position and (keyframe.id in variable_ids or previous.id in variable_ids)):
-            term = DenseTerm(previous.depth_reference, np.eye(4), keyframe.depth_samples_m, K, config.ba_dense_depth_weight,
-                             config.dense_depth_noise_per_m, config.dense_depth_huber_sigmas,
-                             config.dense_depth_max_distance_m)
-            pairs.append(DepthPair(position[keyframe.id], position[previous.id], term))
-        previous = keyframe
+        if previous and previous[-1].segment != keyframe.segment:
+            previous = []
+        for reference in previous if keyframe.id in position else ():
+            if reference.id in position and (keyframe.id in variable_ids or reference.id in variable_ids):
+                term = DenseTerm(reference.depth_reference, np.eye(4), keyframe.depth_samples_m, K,
+                                 config.ba_dense_depth_weight, config.dense_depth_noise_per_m,
+                                 config.dense_depth_huber_sigmas, config.dense_depth_max_distance_m)
+                pairs.append(DepthPair(position[keyframe.id], position[reference.id], term))
+        previous = (previous + [keyframe])[-config.ba_dense_neighbours:]
     return tuple(pairs)
 
 
