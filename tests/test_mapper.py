@@ -329,8 +329,8 @@ def test_the_bridge_lowers_the_joint_loss_of_the_orb_frontends_views(synthetic_s
     config.bridge.reprojection_floor_px = 0.0
     config.bridge.sharpest_window = 0  # the keyframes themselves, with their matched points
     # Reprojection-only tracking: on its keyframes the refinement gains; with the dense depth term, or the depth
-    # edges in bundle adjustment (views 0.83 cm from the truth, 1.36 cm after refining), it does not
-    # (docs/fusion_bridge.md), one reason the refinement is off by default.
+    # edges in bundle adjustment, it moves the views away from the truth (docs/fusion_bridge.md), one reason the
+    # refinement is off by default.
     config.frontend.orb.dense_depth = "never"
     config.frontend.orb.ba_dense_depth = False
     metrics = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False).metrics

@@ -327,15 +327,20 @@ def _evaluate(problem: BundleProblem, camera_from_world, points_world, weights, 
     )
 
 
+def _cost(problem: BundleProblem, camera_from_world, points_world, weights, thresholds, robust) -> float:
+    """The BA cost: the observations' ``0.5 * sum(rho(chi2))`` plus the depth edges' (always robust) cost."""
+    return _evaluate(problem, camera_from_world, points_world, weights, thresholds, robust)[0] \
+        + _pairs_cost(problem.depth_pairs, camera_from_world)
+
+
 def bundle_cost(problem: BundleProblem, camera_from_world=None, points_world=None, robust=False) -> float:
     """``0.5 * sum(rho(chi2))`` at the given (default: the problem's) cameras and points, plus the depth edges'
     (always robust) cost."""
     weights = row_weights(problem.observations, problem.inv_sigma2, problem.depth_noise_per_m)
-    camera_from_world = problem.camera_from_world if camera_from_world is None else camera_from_world
-    return _evaluate(
-        problem, camera_from_world, problem.points_world if points_world is None else points_world,
-        weights, chi2_thresholds(weights), robust,
-    )[0] + _pairs_cost(problem.depth_pairs, camera_from_world)
+    return _cost(
+        problem, problem.camera_from_world if camera_from_world is None else camera_from_world,
+        problem.points_world if points_world is None else points_world, weights, chi2_thresholds(weights), robust,
+    )
 
 
 def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = BundleOptions()) -> BundleSolution:
@@ -354,8 +359,7 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
     order = order[np.argsort(problem.observation_point[order], kind="stable")]
     point_start = np.searchsorted(problem.observation_point[order], np.arange(len(points_world) + 1))
 
-    cost = _evaluate(problem, camera_from_world, points_world, weights, thresholds, options.robust)[0] \
-        + _pairs_cost(problem.depth_pairs, camera_from_world)
+    cost = _cost(problem, camera_from_world, points_world, weights, thresholds, options.robust)
     initial_cost = cost
     damping = options.initial_damping
     iteration = 0
@@ -386,8 +390,7 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
             for camera in np.flatnonzero(variable_index >= 0):
                 candidate_cameras[camera] = exp_se3(delta_cameras[variable_index[camera]]) @ camera_from_world[camera]
             candidate_points = points_world + delta_points
-            candidate_cost = _evaluate(problem, candidate_cameras, candidate_points, weights, thresholds, options.robust)[0] \
-                + _pairs_cost(problem.depth_pairs, candidate_cameras)
+            candidate_cost = _cost(problem, candidate_cameras, candidate_points, weights, thresholds, options.robust)
             if candidate_cost < cost:
                 relative_decrease = (cost - candidate_cost) / max(cost, 1e-300)
                 camera_from_world, points_world = candidate_cameras, candidate_points

@@ -182,12 +182,13 @@ def depth_pairs(slam_map: SlamMap, cameras: list[int], variable_ids: set[int], K
             continue
         if previous and previous[-1].segment != keyframe.segment:
             previous = []
-        for reference in previous if keyframe.id in position else ():
-            if reference.id in position and (keyframe.id in variable_ids or reference.id in variable_ids):
-                term = DenseTerm(reference.depth_reference, np.eye(4), keyframe.depth_samples_m, K,
-                                 config.ba_dense_depth_weight, config.dense_depth_noise_per_m,
-                                 config.dense_depth_huber_sigmas, config.dense_depth_max_distance_m)
-                pairs.append(DepthPair(position[keyframe.id], position[reference.id], term))
+        tied = [reference for reference in previous if keyframe.id in position and reference.id in position
+                and (keyframe.id in variable_ids or reference.id in variable_ids)]
+        for reference in tied:
+            term = DenseTerm(reference.depth_reference, np.eye(4), keyframe.depth_samples_m, K,
+                             config.ba_dense_depth_weight, config.dense_depth_noise_per_m,
+                             config.dense_depth_huber_sigmas, config.dense_depth_max_distance_m)
+            pairs.append(DepthPair(position[keyframe.id], position[reference.id], term))
         previous = (previous + [keyframe])[-config.ba_dense_neighbours:]
     return tuple(pairs)
 
