@@ -1,5 +1,6 @@
 """The ORB RGB-D frontend end to end on synthetic sequences: accuracy, keyframe events, tracking loss, loops."""
 
+import dataclasses
 import logging
 import time
 
@@ -8,7 +9,7 @@ import pytest
 
 from tambridge.evaluation.trajectory import ate_rmse_m
 from tambridge.frontend.orb.frontend import OrbFrontend
-from tambridge.frontend.orb.config import OrbFrontendConfig, scaled_for_image
+from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, scaled_for_image
 from tambridge.geometry import inverse, look_at
 from tambridge.io.synthetic import default_camera, make_room_scene, render
 from tambridge.io.tum import Frame, open_sequence
@@ -103,6 +104,27 @@ def test_blank_frame_is_reported_and_tracking_continues(sequence, caplog):
     keep = np.flatnonzero(final.tracked)
     estimate = Trajectory(final.trajectory.timestamps_s[keep], final.trajectory.world_from_camera[keep])
     assert ate_rmse_m(estimate, sequence.ground_truth) < 0.03
+
+
+def test_a_kidnapped_camera_is_relocalised_and_tracked_on(sequence):
+    """A frame from far back in the loop after frame 24: the local map misses it, bag-of-words relocalisation
+    finds it, the local map is tracked around it with the dense depth term (the default, which crashed here when
+    relocalisation handed it no depth), and the next frames track from there with no velocity carried over the
+    jump."""
+    frames = [sequence[i] for i in range(len(sequence))]
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False))
+    assert frontend.config.dense_depth != DenseDepthUse.never
+    for frame in frames[:25]:
+        frontend.track(frame)
+    kidnapped_to, interval_s = 3, frames[1].timestamp_s - frames[0].timestamp_s
+    stream = [dataclasses.replace(frames[index], index=25 + step, timestamp_s=frames[24].timestamp_s + (step + 1) * interval_s)
+              for step, index in enumerate(range(kidnapped_to, kidnapped_to + 4))]
+    results = [frontend.track(frame) for frame in stream]
+    assert [(r.tracked, r.relocalised) for r in results] == [(True, True)] + [(True, False)] * 3
+    world_from_first = inverse(sequence.ground_truth.world_from_camera[0])
+    for result, index in zip(results, range(kidnapped_to, kidnapped_to + 4)):
+        truth = world_from_first @ sequence.ground_truth.world_from_camera[index]
+        assert np.linalg.norm(result.world_from_camera[:3, 3] - truth[:3, 3]) < 0.03, index
 
 
 def test_a_requested_keyframe_is_the_next_tracked_frame(sequence):

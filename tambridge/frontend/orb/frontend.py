@@ -186,7 +186,7 @@ class OrbFrontend:
         fix, in_view = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m)
         relocalised = False
         if fix is None or fix.inlier_count < self.config.min_inliers:
-            relocalisation = self._relocalise(features, grid)
+            relocalisation = self._relocalise(features, grid, frame.depth_m)
             if relocalisation is None:
                 if self._lost_streak >= LOST_FRAMES_BEFORE_NEW_SEGMENT:
                     started = self._start_segment(frame, features)
@@ -201,7 +201,10 @@ class OrbFrontend:
             logger.info("frame %d (t=%.6f): tracking recovered after %d lost frame(s), %d inliers%s",
                         frame.index, frame.timestamp_s, self._lost_streak, fix.inlier_count,
                         " (relocalised against keyframes)" if relocalised else "")
-        if not self._lost_streak:
+        if relocalised:
+            # The jump to a relocalised pose is no velocity (ORB-SLAM clears its motion model here too).
+            self._motion = np.eye(4)
+        elif not self._lost_streak:
             # After lost frames the last pose was a prediction: keep the velocity from before the loss.
             self._motion = fix.camera_from_world @ inverse(camera_from_world_last)
         self._lost_streak = 0
@@ -243,7 +246,7 @@ class OrbFrontend:
             moved = self.extractor.lift(features.keypoints_px, features.octaves, features.descriptors, frame.rgb, depth_m)
         return dataclasses.replace(frame, depth_m=depth_m, depth_timestamp_s=None), moved
 
-    def _dense_term(self, depth_m: np.ndarray | None, matches: int) -> DenseTerm | None:
+    def _dense_term(self, depth_m: np.ndarray, matches: int) -> DenseTerm | None:
         """The point-to-plane depth term against the last keyframe's depth, where ``dense_depth`` asks for it
         (auto: fewer than ``dense_auto_max_matches`` matches or a motion prior turning fast); else None."""
         config = self.config
@@ -262,8 +265,7 @@ class OrbFrontend:
                          config.dense_depth_max_distance_m)
 
     def _track_local_map(
-        self, features: FrameFeatures, grid, predicted: np.ndarray, radius_scale: float,
-        depth_m: np.ndarray | None = None,
+        self, features: FrameFeatures, grid, predicted: np.ndarray, radius_scale: float, depth_m: np.ndarray,
     ) -> tuple[PoseFix | None, np.ndarray]:
         """Two projection searches of the local map (wide with the prior, tight with the refined pose), each
         followed by motion-only refinement (with the dense depth term of ``depth_m`` where it is used)."""
@@ -296,8 +298,9 @@ class OrbFrontend:
             refined = refine_with_matches(fix.camera_from_world, features, keypoints, ids, self.map, self.K, config, dense)
         return refined, in_view
 
-    def _relocalise(self, features: FrameFeatures, grid) -> tuple[PoseFix, np.ndarray] | None:
-        """Bag-of-words candidates, each verified by :func:`localise`; then the local map around the winner."""
+    def _relocalise(self, features: FrameFeatures, grid, depth_m: np.ndarray) -> tuple[PoseFix, np.ndarray] | None:
+        """Bag-of-words candidates, each verified by :func:`localise`; then the local map around the winner, with the
+        dense depth term of ``depth_m`` (H, W) metres as in tracking."""
         if len(features) < self.config.relocalisation_min_inliers:
             return None
         with self._timed("loop"):
@@ -311,7 +314,7 @@ class OrbFrontend:
                                self.config.relocalisation_min_inliers)
                 if fix is not None and fix.inlier_count >= self.config.relocalisation_min_inliers:
                     self._reference = keyframe
-                    tracked, in_view = self._track_local_map(features, grid, fix.camera_from_world, 1.0)
+                    tracked, in_view = self._track_local_map(features, grid, fix.camera_from_world, 1.0, depth_m)
                     if tracked is not None and tracked.inlier_count >= fix.inlier_count:
                         return tracked, in_view
                     return fix, np.zeros(0, np.int64)
