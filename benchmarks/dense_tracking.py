@@ -3,6 +3,11 @@ segments: ATE, RPE, the largest error, tracking frames/s, and the term's own cos
 
     python benchmarks/dense_tracking.py                                   # every segment below
     python benchmarks/dense_tracking.py --segments fr1_xyz_0-300 --modes never auto
+    python benchmarks/dense_tracking.py --segments fr1_xyz 7scenes_450-550 --modes always --strides 1 2 4
+
+``--strides``: each segment also with every n-th frame only, the camera n times as fast (real motion, real
+images, no added blur): a real-data stand-in for fast rotation, and a run through the lost-frame and
+relocalisation paths where tracking breaks.
 
 Tracking only (the ORB frontend with the default settings: loop closure, global BA, mapping thread), no
 Gaussian mapping. frames/s counts the time inside ``track`` and ``finish``; under shared CPUs compare the modes'
@@ -201,7 +206,7 @@ def depth_fit(frames, sequence, estimate, gap: int = 1, step: int = 10) -> dict:
 
 
 def format_table(rows: list[dict]) -> str:
-    columns = [("segment", "segment", "{}"), ("dense_depth", "mode", "{}"), ("frames", "frames", "{}"),
+    columns = [("segment", "segment", "{}"), ("stride", "stride", "{}"), ("dense_depth", "mode", "{}"), ("frames", "frames", "{}"),
                ("ATE cm", "ate_cm", "{:.2f}"), ("max cm", "max_cm", "{:.2f}"), ("RPE cm/frame", "rpe_cm", "{:.3f}"),
                ("RPE deg/frame", "rpe_deg", "{:.3f}"), ("frames/s", "fps", "{:.1f}"),
                ("tracking CPU ms/frame", "tracking_thread_cpu_ms", "{:.1f}"),
@@ -220,12 +225,16 @@ def main() -> None:
     parser.add_argument("--folder", type=Path, action="append", default=[],
                         help="also a whole sequence folder (a synthetic one: tambridge synth)")
     parser.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES)
+    parser.add_argument("--strides", nargs="*", type=int, default=[1], metavar="N",
+                        help="also track every N-th frame only (the camera N times as fast); default 1")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="OrbFrontendConfig overrides")
     parser.add_argument("--trajectories", type=Path, help="write each run's trajectory here (SEGMENT_MODE.txt)")
     parser.add_argument("--limits", action="store_true", help="also scan clock offsets against the ground truth and "
                         "measure how well its relative poses fit the depth (with the last mode's trajectory)")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "dense_tracking.json")
     args = parser.parse_args()
+    if any(stride < 1 for stride in args.strides):
+        parser.error(f"--strides {' '.join(map(str, args.strides))}: each must be 1 or more")
     configs = {mode: orb_config([f"dense_depth={mode}", *args.set]) for mode in args.modes}
     segments = {name: SEGMENTS[name] for name in args.segments}
     if args.trajectories is not None:
@@ -237,12 +246,14 @@ def main() -> None:
         end = len(sequence) if segment["end"] is None else min(segment["end"], len(sequence))
         frames = [sequence[index] for index in range(segment["start"], end)]
         costs[name] = term_cost(frames, sequence)
-        for mode in args.modes:
-            path = None if args.trajectories is None else args.trajectories / f"{name}_{mode}.txt"
-            trajectory, row = track_segment(frames, sequence, configs[mode], path)
-            row = {"segment": name, **row, "load_1min": os.getloadavg()[0]}
-            print(format_table([row]).splitlines()[-1], flush=True)
-            rows.append(row)
+        for stride in args.strides:
+            for mode in args.modes:
+                suffix = "" if stride == 1 else f"_stride{stride}"
+                path = None if args.trajectories is None else args.trajectories / f"{name}_{mode}{suffix}.txt"
+                trajectory, row = track_segment(frames[::stride], sequence, configs[mode], path)
+                row = {"segment": name, "stride": stride, **row, "load_1min": os.getloadavg()[0]}
+                print(format_table([row]).splitlines()[-1], flush=True)
+                rows.append(row)
         if args.limits:
             limits[name] = {"ate_cm_by_clock_offset_ms": time_offset_scan(trajectory, sequence.ground_truth),
                             "depth_fit": [depth_fit(frames, sequence, trajectory, gap) for gap in (1, 5)]}
