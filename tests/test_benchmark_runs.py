@@ -12,10 +12,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
-def test_sharp_splats_scores_the_map_before_and_after_the_pass_as_the_run_does(synthetic_sequence_dir, tmp_path):
+def test_sharp_splats_scores_the_map_before_and_after_the_pass_and_its_ceiling(synthetic_sequence_dir, tmp_path):
     out = tmp_path / "run"
     child = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "sharp_splats.py"), "--child",
-                            str(synthetic_sequence_dir), "default", "20", str(out)],
+                            str(synthetic_sequence_dir), "default", "20", str(out), "10:0.01"],
                            cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert child.returncode == 0, child.stderr[-3000:]
     row = json.loads(child.stdout.strip().splitlines()[-1])
@@ -28,3 +28,9 @@ def test_sharp_splats_scores_the_map_before_and_after_the_pass_as_the_run_does(s
     assert abs(row["off"]["gaussians"] - row["on"]["gaussians"]) <= 0.01 * row["off"]["gaussians"]
     assert row["off"]["psnr"] != row["on"]["psnr"]
     assert row["frames"] == 20 and row["sharpening_seconds"] > 0 and 10 < row["off"]["psnr"] < 40
+    # The ceiling starts from the run's map and is fitted to the very frames it is scored on: it must score higher
+    # there, with Gaussians added by its densification.
+    ceiling = row["ceiling"]
+    assert ceiling["rounds"] == 10 and ceiling["gaussians_added"] > 0
+    assert ceiling["gaussians"] == row["on"]["gaussians"] + ceiling["gaussians_added"]
+    assert ceiling["psnr_exp"] > row["on"]["psnr_exp"] + 0.5 and ceiling["ssim_exp"] > row["on"]["ssim_exp"]
