@@ -25,7 +25,7 @@ views and on held-out frames between them; where the folder has lossless PNGs of
 
 ``--ceiling ROUNDS[:DENSIFY]`` adds an oracle to each case: after the run, its final map is fitted to the scored
 novel views themselves (the test frames: no run can do this), with no exposure, at full resolution, ROUNDS Adam
-steps per view (first densified on the worst DENSIFY share of each view's pixels, colour error over 0.05, as the
+steps per view in a new random order each round (first densified on the worst DENSIFY share of each view's pixels, colour error over 0.05, as the
 sharpening pass densifies), and scored again as exported (``ceiling``). What a single static map of these
 Gaussians, at these poses, can show at those frames when it is fitted to them: where it stays under a target, no
 schedule, number of views or step count can reach that target; what separates it from the target is then the
@@ -101,8 +101,8 @@ def ceiling_scores(mapping, poses: np.ndarray, frames: list[int], rounds: int, d
     from tambridge.mapping.stage import resize_frame
 
     camera = mapping.sequence.camera
-    chunks = [frames[start : start + mapping.mapper_config.window_size]
-              for start in range(0, len(frames), mapping.mapper_config.window_size)]
+    window = mapping.mapper_config.window_size
+    rng = np.random.default_rng(0)
 
     def chunk_views(chunk):
         return [(poses[index], resize_frame(mapping.sequence[index], 1.0, mapping.device, mapping.sequence.valid_region))
@@ -111,13 +111,17 @@ def ceiling_scores(mapping, poses: np.ndarray, frames: list[int], rounds: int, d
     started, before = time.perf_counter(), len(mapping.map)
     with mapping.threads():
         if densify > 0:
-            for chunk in chunks:
-                for index, (pose, images) in zip(chunk, chunk_views(chunk)):
-                    anchor_id = CEILING_ANCHOR_BASE + index
-                    mapping.map.set_anchor_pose(anchor_id, pose)
-                    mapping.map.densify_colour_error(anchor_id, camera, images, None, 0.05, densify)
+            for index in frames:
+                (pose, images), = chunk_views([index])
+                anchor_id = CEILING_ANCHOR_BASE + index
+                mapping.map.set_anchor_pose(anchor_id, pose)
+                mapping.map.densify_colour_error(anchor_id, camera, images, None, 0.05, densify)
         for _ in range(rounds):
-            for chunk in chunks:
+            # A new order every round: in a fixed one the map follows the exposure of the frames it saw last (7-Scenes'
+            # last frames are the brightest), and the fit scores under the map it started from.
+            order = [frames[i] for i in rng.permutation(len(frames))]
+            for start in range(0, len(order), window):
+                chunk = order[start : start + window]
                 mapping.map.optimise(camera, chunk_views(chunk), list(range(len(chunk))))
     scores = as_exported_scores(mapping, poses, frames)
     return {"psnr_exp": scores["psnr_exp"], "ssim_exp": scores["ssim_exp"], "rounds": rounds, "densify": densify,

@@ -10,7 +10,7 @@ import torch
 
 from tambridge.bridge.config import BridgeConfig
 from tambridge.gaussians.config import MapperConfig
-from tambridge.gaussians.mapper import GaussianMap, ViewImages
+from tambridge.gaussians.mapper import GaussianMap, ViewExposure, ViewImages
 from tambridge.io.synthetic import default_camera
 from tambridge.io.tum import open_sequence
 from tambridge.mapping.stage import MappingStage, resize_frame
@@ -83,13 +83,50 @@ def test_sharpening_reads_frames_again_at_its_resolution_a_chunk_at_a_time(synth
 
     monkeypatch.setattr(stage.map, "optimise", recording)
     stage.sharpen()
-    # 4 views in chunks of the window size (3), at 1.5 x 160x120, each view 2 steps; the mapping cache is untouched.
-    assert [len(shapes) for _, shapes, _ in calls] == [3, 1]
+    # 4 views in chunks of the window size (3), at 1.5 x 160x120, two rounds of one step per view; the mapping cache
+    # is untouched.
+    assert [len(shapes) for _, shapes, _ in calls] == [3, 1, 3, 1]
     assert all(size == (240, 180) for size, _, _ in calls)
     assert all(shape == (180, 240, 3) for _, shapes, _ in calls for shape in shapes)
-    assert [schedule for _, _, schedule in calls] == [[0, 1, 2, 0, 1, 2], [0, 0]]
+    assert [schedule for _, _, schedule in calls] == [[0, 1, 2], [0], [0, 1, 2], [0]]
     assert stage._cache.keys() == cache.keys()
     assert all(images.rgb.shape == (30, 40, 3) for images in stage._cache.values())
+
+
+@pytest.mark.slow
+def test_sharpening_against_the_frames_as_recorded_fits_what_a_viewer_shows(synthetic_sequence_dir, tmp_path):
+    """Exposures that drifted to a 25 % gain (as auto exposure drives them on real data) leave the map's own colours
+    dark: through them, the pass keeps the map dark; against the frames as recorded (sharp_through_exposures
+    false) it brings the map's own colours, what splats.ply shows, to the frames, and leaves the exposures as they
+    were."""
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
+    stage, _ = coarse_stage(sequence, tmp_path)
+    with torch.no_grad():
+        stage.map.recolour(ViewExposure(torch.tensor([[np.log(0.8)] * 3, [0.0] * 3], dtype=torch.float32)))
+    drifted = torch.tensor([[np.log(1.25)] * 3, [0.0] * 3], dtype=torch.float32)
+    state = copy.deepcopy(stage.state_dict())
+
+    def as_exported_l1() -> float:
+        errors = []
+        for view in stage.views:
+            frame = resize_frame(stage.sequence[view.frame_index], 1.0)
+            rendered = stage.map.render(stage.sequence.camera, stage.view_pose(view)).rgb.clamp(0.0, 1.0)
+            errors.append(float((rendered - frame.rgb).abs().mean()))
+        return float(np.mean(errors))
+
+    after = {}
+    for through_exposures in (True, False):
+        stage.load_state_dict(copy.deepcopy(state))
+        for view in stage.views:
+            view.exposure = ViewExposure(drifted, learning_rate=1e-2)
+        before = as_exported_l1()
+        stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=4,
+                                                  sharp_through_exposures=through_exposures)
+        stage.sharpen()
+        after[through_exposures] = as_exported_l1()
+        if not through_exposures:
+            assert all(torch.equal(view.exposure.parameters.detach(), drifted) for view in stage.views)
+    assert after[False] < 0.85 * before and after[False] < 0.85 * after[True], (before, after)
 
 
 def test_densify_colour_error_adds_one_pixel_gaussians_at_the_worst_pixels_within_budget():

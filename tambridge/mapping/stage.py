@@ -426,24 +426,28 @@ class MappingStage:
 
     def sharpen(self) -> None:
         """The sharpening pass: every view's frame read again at ``mapper.sharp_resolution_scale`` (the resolution a
-        user views the map at), Gaussians added where its colour error is worst (``sharp_densify_*``), then
-        ``sharp_iterations_per_view`` Adam steps on each view, a chunk of views at a time so that only a window's
-        frames are held at that resolution."""
+        user views the map at), Gaussians added where its colour error is worst (``sharp_densify_*``, first round),
+        then ``sharp_iterations_per_view`` rounds of one Adam step on each view, a chunk of views at a time so that
+        only a window's frames are held at that resolution, in a new order each round; through the views'
+        exposures, or against the frames as recorded (``sharp_through_exposures``)."""
         config = self.mapper_config
         camera = self.sequence.camera.scaled(config.sharp_resolution_scale)
         added = 0
-        for chunk in self.view_chunks():
-            views = []
-            for view in chunk:
-                images = resize_frame(self.sequence[view.frame_index], config.sharp_resolution_scale, self.device,
-                                      self.sequence.valid_region)
-                posed = self.posed_images(view, images, camera)
-                added += self.map.densify_colour_error(view.keyframe_id, camera, images, view.exposure,
-                                                       config.sharp_densify_error, config.sharp_densify_fraction,
-                                                       posed[0] if posed[0].ndim == 3 else None)
-                views.append(posed)
-            self.map.optimise(camera, views, list(range(len(chunk))) * config.sharp_iterations_per_view,
-                              self.exposures(chunk))
+        for round_index in range(config.sharp_iterations_per_view):
+            for chunk in self.view_chunks():
+                views = []
+                for view in chunk:
+                    images = resize_frame(self.sequence[view.frame_index], config.sharp_resolution_scale, self.device,
+                                          self.sequence.valid_region)
+                    posed = self.posed_images(view, images, camera)
+                    if round_index == 0:
+                        added += self.map.densify_colour_error(
+                            view.keyframe_id, camera, images, view.exposure if config.sharp_through_exposures else None,
+                            config.sharp_densify_error, config.sharp_densify_fraction,
+                            posed[0] if posed[0].ndim == 3 else None)
+                    views.append(posed)
+                self.map.optimise(camera, views, list(range(len(chunk))),
+                                  self.exposures(chunk) if config.sharp_through_exposures else None)
         logger.info("sharpening at %dx%d: %d steps per view over %d views, +%d Gaussians -> %d", camera.width,
                     camera.height, config.sharp_iterations_per_view, len(self.views), added, len(self.map))
 
