@@ -25,11 +25,11 @@ views and on held-out frames between them; where the folder has lossless PNGs of
 
 ``--ceiling ROUNDS[:DENSIFY]`` adds an oracle to each case: after the run, its final map is fitted to the scored
 novel views themselves (the test frames: no run can do this), with no exposure, at full resolution, ROUNDS Adam
-steps per view in a new random order each round (first densified on the worst DENSIFY share of each view's pixels, colour error over 0.05, as the
-sharpening pass densifies), and scored again as exported (``ceiling``). What a single static map of these
-Gaussians, at these poses, can show at those frames when it is fitted to them: where it stays under a target, no
-schedule, number of views or step count can reach that target; what separates it from the target is then the
-views' disagreement (poses, exposure, colour registration) and the representation, not the mapping.
+steps per view in a new random order each round (first densified on the worst DENSIFY share of each view's pixels,
+colour error over 0.05, as the sharpening pass densifies), and scored again as exported (``ceiling``). What a single
+static map of these Gaussians, at these poses, can show at those frames when it is fitted to them: where it stays
+under a target, no schedule, number of views or step count can reach that target; what separates it from the target
+is then the views' disagreement (poses, exposure, colour registration) and the representation, not the mapping.
 
 Prints a table and writes benchmarks/results/sharp_splats.json.
 """
