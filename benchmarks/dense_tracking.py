@@ -230,7 +230,7 @@ def main() -> None:
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="OrbFrontendConfig overrides")
     parser.add_argument("--trajectories", type=Path, help="write each run's trajectory here (SEGMENT_MODE.txt)")
     parser.add_argument("--limits", action="store_true", help="also scan clock offsets against the ground truth and "
-                        "measure how well its relative poses fit the depth (with the last mode's trajectory)")
+                        "measure how well its relative poses fit the depth (with the last stride's and mode's trajectory)")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "dense_tracking.json")
     args = parser.parse_args()
     if any(stride < 1 for stride in args.strides):

@@ -98,10 +98,9 @@ def ceiling_scores(mapping, poses: np.ndarray, frames: list[int], rounds: int, d
     """The oracle of ``--ceiling``: ``mapping.map`` fitted to ``frames`` (their rendering ``poses``) with no
     exposure, ``rounds`` steps per frame at full resolution after densifying the worst ``densify`` share of each
     frame's pixels; then :func:`as_exported_scores` at the same frames, with the Gaussians added and the seconds."""
-    from tambridge.mapping.stage import resize_frame
+    from tambridge.mapping.stage import resize_frame, shuffled_chunks
 
     camera = mapping.sequence.camera
-    window = mapping.mapper_config.window_size
     rng = np.random.default_rng(0)
 
     def chunk_views(chunk):
@@ -119,9 +118,7 @@ def ceiling_scores(mapping, poses: np.ndarray, frames: list[int], rounds: int, d
         for _ in range(rounds):
             # A new order every round: in a fixed one the map follows the exposure of the frames it saw last (7-Scenes'
             # last frames are the brightest), and the fit scores under the map it started from.
-            order = [frames[i] for i in rng.permutation(len(frames))]
-            for start in range(0, len(order), window):
-                chunk = order[start : start + window]
+            for chunk in shuffled_chunks(frames, mapping.mapper_config.window_size, rng):
                 mapping.map.optimise(camera, chunk_views(chunk), list(range(len(chunk))))
     scores = as_exported_scores(mapping, poses, frames)
     return {"psnr_exp": scores["psnr_exp"], "ssim_exp": scores["ssim_exp"], "rounds": rounds, "densify": densify,

@@ -420,9 +420,7 @@ class MappingStage:
 
     def view_chunks(self) -> list[list[MappingView]]:
         """The views in random order, a window's worth at a time (bounded memory), for the passes after tracking."""
-        order = [self.views[i] for i in self._rng.permutation(len(self.views))]
-        chunk_size = max(1, self.mapper_config.window_size)
-        return [order[start : start + chunk_size] for start in range(0, len(order), chunk_size)]
+        return shuffled_chunks(self.views, self.mapper_config.window_size, self._rng)
 
     def sharpen(self) -> None:
         """The sharpening pass: every view's frame read again at ``mapper.sharp_resolution_scale`` (the resolution a
@@ -435,6 +433,7 @@ class MappingStage:
         added = 0
         for round_index in range(config.sharp_iterations_per_view):
             for chunk in self.view_chunks():
+                # Frames are read again each round: holding every view at this resolution would not be bounded.
                 views = []
                 for view in chunk:
                     images = resize_frame(self.sequence[view.frame_index], config.sharp_resolution_scale, self.device,
@@ -486,6 +485,14 @@ class MappingStage:
         state = dict(state)
         self.map.load_state_dict(state.pop("map"))
         restore_attributes(self, _stage_tensors_to(state, self.device))
+
+
+def shuffled_chunks(items: list, chunk_size: int, rng: np.random.Generator) -> list[list]:
+    """``items`` in a random order drawn from ``rng``, cut into lists of ``chunk_size`` (at least 1), the last shorter:
+    the order of the passes over views after tracking, a new one each pass or round."""
+    order = [items[i] for i in rng.permutation(len(items))]
+    size = max(1, chunk_size)
+    return [order[start : start + size] for start in range(0, len(order), size)]
 
 
 def round_robin(steps: list[int]) -> list[int]:
