@@ -31,6 +31,15 @@ static map of these Gaussians, at these poses, can show at those frames when it 
 under a target, no schedule, number of views or step count can reach that target; what separates it from the target
 is then the views' disagreement (poses, exposure, colour registration) and the representation, not the mapping.
 
+``--limits`` adds two more oracles at the scored frames, on the run's final map as exported, each scored as
+``psnr_exp`` is (and where the ceiling's gap to the run comes from):
+- ``psnr_affine``: every render mapped by the gain and bias per channel that fit that frame best (least squares
+  against the frame itself): what the frames' own exposures (auto exposure, per frame) cost a map of fixed colours,
+  which is all a .ply holds;
+- ``psnr_pose``: every frame's pose first refined against the map by the bridge's refinement
+  (:func:`tambridge.bridge.refinement.refine_render_pose`) with its colour term alone, at the mapping resolution:
+  what the frames' tracked poses cost; ``pose_moved_mm`` the median move.
+
 Prints a table and writes benchmarks/results/sharp_splats.json.
 """
 
@@ -90,6 +99,52 @@ def as_exported_scores(mapping, poses: np.ndarray, frames: list[int]) -> dict:
     return {"psnr_exp": float(np.mean(psnr)), "ssim_exp": float(np.mean(ssim)), "ssim_low": float(np.mean(ssim_low))}
 
 
+def limit_scores(mapping, poses: np.ndarray, frames: list[int], pose_iterations: int = 10) -> dict:
+    """The oracles of ``--limits`` at ``frames`` (their rendering ``poses``) on ``mapping.map`` as it is: mean PSNR
+    as exported with the best affine colour of each frame (``psnr_affine``) and at poses refined against the map
+    by colour alone (``psnr_pose``, ``pose_moved_mm``); with the plain ``psnr_exp`` they are compared with."""
+    import dataclasses
+
+    import torch
+
+    from tambridge.bridge.refinement import refine_render_pose
+    from tambridge.evaluation.rendering import psnr_db
+    from tambridge.mapping.stage import resize_frame
+
+    camera = mapping.sequence.camera
+    top, bottom, left, right = mapping.sequence.valid_region
+    bridge = dataclasses.replace(mapping.bridge_config, w_reprojection=0.0, w_depth=0.0, w_colour=1.0,
+                                 iterations=pose_iterations)
+    with torch.no_grad():
+        gaussians = mapping.map.gaussians()
+    plain, affine, refined, moved = [], [], [], []
+
+    def cropped_render(pose) -> np.ndarray:
+        with torch.no_grad():
+            return mapping.map.render(camera, pose).rgb.clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
+
+    with mapping.threads():
+        for index in frames:
+            frame = mapping.sequence[index]
+            observed = frame.rgb[top:bottom, left:right].astype(np.float32) / 255.0
+            rendered = cropped_render(poses[index])
+            plain.append(psnr_db(rendered, observed))
+            design = np.stack([rendered.reshape(-1, 3), np.ones_like(rendered.reshape(-1, 3))], axis=2)
+            fitted = np.empty_like(rendered)
+            for channel in range(3):
+                (gain, bias), *_ = np.linalg.lstsq(design[:, channel], observed[..., channel].ravel(), rcond=None)
+                fitted[..., channel] = np.clip(gain * rendered[..., channel] + bias, 0.0, 1.0)
+            affine.append(psnr_db(fitted, observed))
+            low = resize_frame(frame, mapping.mapper_config.resolution_scale, mapping.device)
+            refinement = refine_render_pose(gaussians, mapping.camera, poses[index], low.rgb, low.depth_m,
+                                            np.zeros((0, 3)), np.zeros((0, 2)), bridge,
+                                            backend=mapping.mapper_config.backend)
+            refined.append(psnr_db(cropped_render(refinement.world_from_camera), observed))
+            moved.append(1e3 * float(np.linalg.norm(refinement.world_from_camera[:3, 3] - poses[index][:3, 3])))
+    return {"psnr_exp": float(np.mean(plain)), "psnr_affine": float(np.mean(affine)), "psnr_pose": float(np.mean(refined)),
+            "pose_moved_mm": float(np.median(moved)), "pose_iterations": pose_iterations}
+
+
 # Anchor ids of the ceiling's Gaussians, one per scored frame, above any keyframe id of a run.
 CEILING_ANCHOR_BASE = 10**7
 
@@ -127,9 +182,9 @@ def ceiling_scores(mapping, poses: np.ndarray, frames: list[int], rounds: int, d
 
 
 def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[str],
-               ceiling: tuple[int, float] | None = None) -> dict:
+               ceiling: tuple[int, float] | None = None, limits: bool = False) -> dict:
     """One run in this process, the map before the sharpening pass kept for the "off" scores; with ``ceiling``
-    (rounds, densify share), :func:`ceiling_scores` of the final map too."""
+    (rounds, densify share), :func:`ceiling_scores` of the final map too; with ``limits``, :func:`limit_scores`."""
     import pipelines.reconstruct as pipeline
     from tambridge.config import load_config
     from tambridge.evaluation.mapping import evaluation_frames, score_views
@@ -148,10 +203,11 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
     rows: dict = {}
     sharpen = MappingStage.sharpen
 
-    def keeping_the_map(stage: MappingStage) -> None:
+    def keeping_the_map(stage: MappingStage, frames_between=()) -> None:
         before["map"] = copy.deepcopy(stage.map.state_dict())
         before["exposures"] = [None if v.exposure is None else copy.deepcopy(v.exposure.state_dict()) for v in stage.views]
-        sharpen(stage)
+        before["frames_between"] = len(frames_between)
+        sharpen(stage, frames_between)
 
     mapping_metrics = pipeline.mapping_metrics
 
@@ -162,6 +218,8 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
         on = {"psnr": metrics.rendering.novel_views.psnr_db, "ssim": metrics.rendering.novel_views.ssim,
               "gaussians": len(mapping.map)}
         rows["on"] = on | as_exported_scores(mapping, poses, novel)
+        if limits:
+            rows["limits"] = limit_scores(mapping, poses, novel)
         final_map = copy.deepcopy(mapping.map.state_dict()) if ceiling else None
         if before:
             mapping.map.load_state_dict(before["map"])
@@ -189,6 +247,7 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
         rows["off"].update(seconds=metrics.seconds_total - sharpening_s,
                            fps=metrics.frames / (metrics.seconds_total - sharpening_s))
     return {"sequence": sequence.name, "preset": preset, "frames": metrics.frames, "mapping_views": len(before["exposures"]) if before else None,
+            "frames_between": before.get("frames_between"),
             "wall_seconds_process": wall, "sharpening_seconds": sharpening_s,
             "seconds_per_stage": metrics.seconds_per_stage, "peak_memory_mb": metrics.peak_memory_mb,
             "ate_cm": None if metrics.trajectory is None else metrics.trajectory.ate_rmse_m * 100, "extra": extra, **rows}
@@ -281,6 +340,11 @@ def table(rows: list[dict], fits: list[dict]) -> str:
             lines.append(f"{row['sequence'][:28]:28} {row['preset']:8} {'ceil':5} {'-':>6} {'-':>6} {c['psnr_exp']:7.2f} "
                          f"{c['ssim_exp']:7.3f} {'-':>7} {'-':>6} {c['seconds']:8.1f} {c['gaussians']:9d}  (fitted to the "
                          f"scored frames: {c['rounds']} rounds, densify {c['densify']:g})")
+        if "limits" in row:
+            limit = row["limits"]
+            lines.append(f"{row['sequence'][:28]:28} {row['preset']:8} limits: as exported {limit['psnr_exp']:.2f} dB; "
+                         f"best colour gain and bias per frame {limit['psnr_affine']:.2f}; poses refined against the map "
+                         f"{limit['psnr_pose']:.2f} (moved {limit['pose_moved_mm']:.1f} mm)")
     for fit in fits:
         lines.append(f"fit {fit['sequence'][:24]} scale {fit['sharp_resolution_scale']:g} densify {fit.get('densify', 0):g}: fitted {fit['fitted_psnr']:.2f} dB "
                      f"/ {fit['fitted_ssim']:.3f}, held out {fit['held_out_psnr']:.2f} dB / {fit['held_out_ssim']:.3f}, "
@@ -296,7 +360,10 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], help="section.key=value for every case")
     parser.add_argument("--ceiling", metavar="ROUNDS[:DENSIFY]", help="also fit each case's final map to its scored "
                         "frames themselves (an oracle; see above)")
-    parser.add_argument("--child", nargs=5, metavar=("SEQUENCE", "PRESET", "FRAMES", "OUT", "CEILING"), help=argparse.SUPPRESS)
+    parser.add_argument("--limits", action="store_true", help="also score each case's final map with two oracles: "
+                        "the best colour gain and bias per frame, and poses refined against the map (see above)")
+    parser.add_argument("--child", nargs=6, metavar=("SEQUENCE", "PRESET", "FRAMES", "OUT", "CEILING", "LIMITS"),
+                        help=argparse.SUPPRESS)
     parser.add_argument("--child-fit", nargs=4, metavar=("SEQUENCE", "FRAMES", "SCALE", "DENSIFY"), help=argparse.SUPPRESS)
     parser.add_argument("--output", type=Path, default=RESULTS / "sharp_splats.json")
     arguments = parser.parse_args()
@@ -307,9 +374,9 @@ def main() -> None:
             parser.error(f"--ceiling {arguments.ceiling}: give ROUNDS (a whole number, 1 or more) and optionally "
                          ":DENSIFY (a share of pixels in [0, 1)), for example 10 or 10:0.02")
     if arguments.child:
-        sequence, preset, frames, out, ceiling = arguments.child
+        sequence, preset, frames, out, ceiling, limits = arguments.child
         print(json.dumps(child_case(Path(sequence), preset, int(frames), Path(out), arguments.set,
-                                    None if ceiling == "-" else parse_ceiling(ceiling))))
+                                    None if ceiling == "-" else parse_ceiling(ceiling), limits == "limits")))
         return
     if arguments.child_fit:
         sequence, frames, scale, densify = arguments.child_fit
@@ -335,7 +402,8 @@ def main() -> None:
         name, preset, frames = case.split(":")
         out = RESULTS / "runs" / f"sharp_splats_{name}_{preset}_{frames}"
         extra = [item for setting in arguments.set for item in ("--set", setting)]
-        row = run_child(["--child", str(SEQUENCES[name]), preset, frames, str(out), arguments.ceiling or "-", *extra],
+        row = run_child(["--child", str(SEQUENCES[name]), preset, frames, str(out), arguments.ceiling or "-",
+                         "limits" if arguments.limits else "-", *extra],
                         out.with_suffix(".log"))
         if row is None:
             print(f"{case}: failed, see {out.with_suffix('.log')}", file=sys.stderr)

@@ -30,7 +30,7 @@ from tambridge.config import Config, check_config, config_for_camera, to_dict, t
 from tambridge.device import device_summary, resolve_device
 from tambridge.errors import TrackingFailedError
 from tambridge.evaluation.exported import ExportedMap
-from tambridge.evaluation.mapping import mapping_metrics
+from tambridge.evaluation.mapping import evaluation_frames, mapping_metrics
 from tambridge.evaluation.metrics import DeviceMetrics, RunMetrics, TrajectoryMetrics, WorldMetrics, write_metrics
 from tambridge.evaluation.report import REPORT_FILES, write_run_report
 from tambridge.evaluation.trajectory import TrajectoryErrors, TrajectoryEvaluationError, evaluate_trajectory
@@ -163,7 +163,9 @@ def reconstruct(
             peak_memory_tracking_mb = peak_memory_mb()
             gaussians = mesh = None
             if mapping is not None:
-                mapping.finish(tracking.keyframe_poses)
+                # The frames the evaluation scores as novel views stay out of the map.
+                mapping.finish(tracking.keyframe_poses, tracking,
+                               held_out=evaluation_frames(len(sequence), config.evaluation.novel_view_every, set()))
                 mapping.anchor_exposures()  # the colours splats.ply holds are the median view's
                 gaussians = mapping.map.world_gaussians()
             if config.mesh.enabled:

@@ -393,3 +393,30 @@ def test_more_rasteriser_threads_than_the_machine_has_run_on_what_it_has():
                            capture_output=True, text=True, timeout=120)
     assert child.returncode == 0, child.stderr
     assert child.stdout.split() == ["1"]
+
+
+@pytest.mark.slow
+def test_reconstruct_sharpens_on_frames_between_views_but_never_on_the_scored_ones(synthetic_sequence_dir, tmp_path,
+                                                                                  monkeypatch):
+    config = Config()
+    config.input.max_frames = 20
+    config.mesh.enabled = False
+    config.mapper.sharp_frames_between = 2
+    fitted = []
+    sharpen = MappingStage.sharpen
+
+    def recording(stage, frames_between=()):
+        fitted.extend(frame.frame_index for frame in frames_between)
+        return sharpen(stage, frames_between)
+
+    monkeypatch.setattr(MappingStage, "sharpen", recording)
+    metrics = reconstruct(synthetic_sequence_dir, tmp_path / "out", config, progress=False).metrics
+    keyframe_frames = {round(t * 30) for t in np.loadtxt(tmp_path / "out" / "keyframes.txt", ndmin=2)[:, 0]}
+    scored = evaluation_frames(20, config.evaluation.novel_view_every, keyframe_frames)
+    assert metrics.map.rendering.novel_views.frames == len(scored) >= 1
+    # Two frames between each view and the next (or all there are), none of them scored, a view or out of range.
+    gaps = np.diff(sorted(keyframe_frames) + [20]) - 1
+    assert len(fitted) == len(set(fitted)) > 0
+    assert len(fitted) <= int(np.minimum(gaps, 2).sum())
+    assert not set(fitted) & (set(range(0, 20, config.evaluation.novel_view_every)) | keyframe_frames)
+    assert all(0 < index < 20 for index in fitted)

@@ -31,7 +31,8 @@ class MapperConfig:
     window (the ``window_size - 1`` earlier views that overlap it most); after the frontend finishes, every
     mapping view gets ``final_iterations_per_view`` more at the final poses. Mapping runs on frames resized by
     ``resolution_scale``; a last sharpening pass (``sharp_*``) runs at ``sharp_resolution_scale``, where a user views
-    the map. Learning rates are 4-10x SplaTAM's: with a few dozen steps per view rather than SplaTAM's
+    the map, over the views and ``sharp_frames_between`` tracked frames between each view and the next (at
+    ``sharp_between_resolution_scale``; never a frame the evaluation scores). Learning rates are 4-10x SplaTAM's: with a few dozen steps per view rather than SplaTAM's
     hundreds they reach a sharper map (docs/benchmarks.md).
     """
 
@@ -55,6 +56,14 @@ class MapperConfig:
                                                  "this (1: the camera's resolution)", Range(0, 2, low_open=True))
     sharp_iterations_per_view: int = setting(1, "Adam steps per mapping view in the sharpening pass (0: off), one "
                                                 "round over the views each", NON_NEGATIVE)
+    # The views alone are sparse samples of the path: a map fitted to them generalises poorly to the frames between
+    # them, which a viewer shows. The evaluation's novel views are never among these frames.
+    sharp_frames_between: int = setting(0, "the sharpening pass also fits this many tracked frames between each "
+                                           "view and the next (evenly spaced; never a held-out evaluation frame)",
+                                        NON_NEGATIVE)
+    # Half resolution scores as well as full at less cost (docs/benchmarks.md, "Frames between the views").
+    sharp_between_resolution_scale: float = setting(0.5, "... fitted on frames resized by this (1: the camera's "
+                                                         "resolution)", Range(0, 2, low_open=True))
     # The views' exposures keep the online map in the median view's colours, which no recorded frame shows; fitted
     # to the frames as recorded, the map's colours become what the frames that see each surface show, which is what
     # a viewer of splats.ply shows: more PSNR as exported at the same cost (docs/benchmarks.md, "Sharp splats").

@@ -6,9 +6,9 @@ Coverage (``mapper.coverage_unexplained``): ``MappingStage.needs_view`` renders 
 between keyframes and says when one shows too much the map does not explain; the pipeline then asks the frontend
 for a keyframe, and such a keyframe is mapped even where eq. 3 finds it too similar to the previous one.
 ``MappingStage.finish`` moves every view to the frontend's final (loop-corrected) keyframe poses and runs a last
-pass over all views, then a sharpening pass at the camera's resolution. Frames are not kept: a small cache holds
-the window's images at the mapping resolution and anything else (the sharpening pass's frames too) is read again
-from the sequence.
+pass over all views, then a sharpening pass at the camera's resolution over the views and some tracked frames
+between them (never one the evaluation holds out). Frames are not kept: a small cache holds the window's images at
+the mapping resolution and anything else (the sharpening pass's frames too) is read again from the sequence.
 
 Rendering poses. A mapping view's pose is its keyframe's pose times ``keyframe_from_view`` (the tracked offset of
 the frame it was mapped through, times the bridge's correction; identity with the bridge off), so frontend
@@ -23,6 +23,7 @@ import collections
 import contextlib
 import dataclasses
 import logging
+from collections.abc import Collection
 
 import cv2
 import numpy as np
@@ -35,7 +36,7 @@ from tambridge.bridge.view_selection import SHARPER_FRAME, Candidate, Selection,
 from tambridge.images import sharpness as frame_sharpness
 from tambridge.state import attribute_state, restore_attributes
 from tambridge.bridge.config import BridgeConfig
-from tambridge.frontend.contract import KeyframeEvent, TrackResult
+from tambridge.frontend.contract import FrontendResult, KeyframeEvent, TrackResult
 from tambridge.gaussians.config import ExposureAnchor, MapperConfig
 from tambridge.gaussians.mapper import GaussianMap, ViewExposure, ViewImages, backproject
 from tambridge.threads import TORCH_THREADS, compute_threads
@@ -80,6 +81,18 @@ def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device
     return ViewImages(torch.from_numpy(rgb.astype(np.float32) / 255.0), resize_depth(frame.depth_m, scale), colour_valid).to(device)
 
 
+@dataclasses.dataclass(frozen=True)
+class FrameBetween:
+    """A tracked frame that is not a view, fitted by the sharpening pass: ``world_from_camera`` (4x4) its rendering
+    pose (:meth:`MappingStage.rendering_pose`), ``exposure_path`` its motion over the exposure (None: rendered
+    sharp), ``view`` the view it is anchored at (whose exposure it is rendered through, where it is)."""
+
+    frame_index: int
+    world_from_camera: np.ndarray
+    exposure_path: ExposurePath | None
+    view: MappingView
+
+
 class MappingStage:
     """Fusion Bridge + online mapper over one sequence (state across keyframes).
 
@@ -122,16 +135,21 @@ class MappingStage:
 
     def view_poses(self, view: MappingView, camera, depth_m: torch.Tensor) -> np.ndarray:
         """The poses the mapper renders a view at, by ``camera`` (``depth_m`` (H, W) the view's depth at its
-        resolution): :meth:`view_pose` (4, 4), or (K, 4, 4) along its exposure path where the image moves
-        ``bridge.blur_step_px`` or more over the exposure (:func:`subpose_count`)."""
-        pose = self.view_pose(view)
-        # A view without a path (blur modelling off, the default on real data) needs no look at its depth.
-        count = 1 if view.exposure_path is None else subpose_count(
-            view.exposure_path, camera, depth_m.cpu().numpy(), self.bridge_config.blur_step_px,
-            self.bridge_config.blur_max_subposes)
+        resolution): :meth:`view_pose` along its exposure path (:meth:`poses_over_exposure`)."""
+        poses = self.poses_over_exposure(self.view_pose(view), view.exposure_path, camera, depth_m)
         if camera == self.camera:
-            self.subposes[view.frame_index] = count
-        return pose if count == 1 else pose @ view.exposure_path.poses(count)
+            self.subposes[view.frame_index] = 1 if poses.ndim == 2 else len(poses)
+        return poses
+
+    def poses_over_exposure(self, world_from_camera: np.ndarray, path: ExposurePath | None, camera,
+                            depth_m: torch.Tensor) -> np.ndarray:
+        """A frame's 4x4 ``world_from_camera``, or (K, 4, 4) along its exposure ``path`` where the image moves
+        ``bridge.blur_step_px`` or more over the exposure (:func:`subpose_count`; ``depth_m`` (H, W) at
+        ``camera``'s resolution)."""
+        # A frame without a path (blur modelling off, the default on real data) needs no look at its depth.
+        count = 1 if path is None else subpose_count(path, camera, depth_m.cpu().numpy(), self.bridge_config.blur_step_px,
+                                                     self.bridge_config.blur_max_subposes)
+        return world_from_camera if count == 1 else world_from_camera @ path.poses(count)
 
     def exposure_path_of(self, frame_index: int, world_from_frame: np.ndarray) -> ExposurePath | None:
         """The exposure path of a frame tracked at ``world_from_frame``, through the tracked frames just before and
@@ -396,9 +414,12 @@ class MappingStage:
 
     # ---- after the frontend ----------------------------------------------------------------------------------
 
-    def finish(self, keyframe_poses: dict[int, np.ndarray]) -> None:
+    def finish(self, keyframe_poses: dict[int, np.ndarray], tracking: FrontendResult | None = None,
+               held_out: Collection[int] = ()) -> None:
         """Move every view to the final keyframe poses, run ``final_iterations_per_view`` more steps on each view
-        (in random order; times :meth:`steps_factor`), then the sharpening pass (:meth:`sharpen`), and prune."""
+        (in random order; times :meth:`steps_factor`), then the sharpening pass (:meth:`sharpen`) over the views and
+        the tracked frames between them that ``tracking`` (the frontend's final result; None: views only) gives,
+        never a frame of ``held_out`` (the evaluation's novel views), and prune."""
         with self.run_log.stage("final_refinement"), self.threads():
             self.update_keyframe_poses(keyframe_poses)
             for chunk in self.view_chunks():
@@ -407,7 +428,7 @@ class MappingStage:
                 self.map.optimise(self.camera, views, round_robin(steps), self.exposures(chunk))
         if self.mapper_config.sharp_iterations_per_view:
             with self.run_log.stage("sharpening"), self.threads():
-                self.sharpen()
+                self.sharpen([] if tracking is None else self.frames_between(tracking, held_out))
         if self.views:
             with self.run_log.stage("final_refinement"):
                 removed = self.final_prune()
@@ -422,33 +443,70 @@ class MappingStage:
         """The views in random order, a window's worth at a time (bounded memory), for the passes after tracking."""
         return shuffled_chunks(self.views, self.mapper_config.window_size, self._rng)
 
-    def sharpen(self) -> None:
+    def frames_between(self, tracking: FrontendResult, held_out: Collection[int]) -> list[FrameBetween]:
+        """The tracked frames the sharpening pass fits besides the views: ``mapper.sharp_frames_between`` between
+        each view's frame and the next one's (after the last view: up to the sequence's end), evenly spaced among
+        the tracked frames there that are not in ``held_out`` (:func:`frames_between_views`), each at its rendering
+        pose, rendered over its exposure where blur modelling is on."""
+        if not self.views or not self.mapper_config.sharp_frames_between:
+            return []
+        usable = np.asarray(tracking.tracked, bool).copy()
+        usable[[index for index in held_out if 0 <= index < len(usable)]] = False
+        poses = tracking.trajectory.world_from_camera
+        timestamps = self.sequence.timestamps_s
+        frames = []
+        for index in frames_between_views([view.frame_index for view in self.views], usable,
+                                          self.mapper_config.sharp_frames_between):
+            path = None
+            if self.blur_exposure_s:
+                neighbours = [(float(timestamps[other]), poses[other]) for other in (index - 1, index + 1)
+                              if 0 <= other < len(poses) and tracking.tracked[other]]
+                path = exposure_path(poses[index], float(timestamps[index]), neighbours, self.blur_exposure_s)
+            frames.append(FrameBetween(index, self.rendering_pose(index, poses[index]), path, self.anchor_view(index)))
+        return frames
+
+    def sharpen(self, frames_between: list[FrameBetween] = ()) -> None:
         """The sharpening pass: every view's frame read again at ``mapper.sharp_resolution_scale`` (the resolution a
-        user views the map at), Gaussians added where its colour error is worst (``sharp_densify_*``, first round),
-        then ``sharp_iterations_per_view`` rounds of one Adam step on each view, a chunk of views at a time so that
-        only a window's frames are held at that resolution, in a new order each round; through the views'
-        exposures, or against the frames as recorded (``sharp_through_exposures``)."""
+        user views the map at) and every one of ``frames_between`` at ``mapper.sharp_between_resolution_scale``,
+        Gaussians added where a view's colour error is worst (``sharp_densify_*``, first round), then
+        ``sharp_iterations_per_view`` rounds of one Adam step on each view and frame, a chunk of views or of frames
+        at a time so that only a window's frames are held, in a new order each round; through the views' exposures
+        (a frame between: its anchor view's), or against the frames as recorded (``sharp_through_exposures``)."""
         config = self.mapper_config
-        camera = self.sequence.camera.scaled(config.sharp_resolution_scale)
+        scales = {MappingView: config.sharp_resolution_scale, FrameBetween: config.sharp_between_resolution_scale}
+        cameras = {kind: self.sequence.camera.scaled(scale) for kind, scale in scales.items()}
         added = 0
         for round_index in range(config.sharp_iterations_per_view):
-            for chunk in self.view_chunks():
+            chunks = shuffled_chunks(self.views, config.window_size, self._rng)
+            if frames_between:
+                chunks = shuffled_chunks(chunks + shuffled_chunks(list(frames_between), config.window_size, self._rng),
+                                         1, self._rng)
+                chunks = [chunk for chunk, in chunks]
+            for chunk in chunks:
+                kind = type(chunk[0])
+                camera = cameras[kind]
                 # Frames are read again each round: holding every view at this resolution would not be bounded.
-                views = []
-                for view in chunk:
-                    images = resize_frame(self.sequence[view.frame_index], config.sharp_resolution_scale, self.device,
+                posed, exposures = [], []
+                for item in chunk:
+                    images = resize_frame(self.sequence[item.frame_index], scales[kind], self.device,
                                           self.sequence.valid_region)
-                    posed = self.posed_images(view, images, camera)
-                    if round_index == 0:
-                        added += self.map.densify_colour_error(
-                            view.keyframe_id, camera, images, view.exposure if config.sharp_through_exposures else None,
-                            config.sharp_densify_error, config.sharp_densify_fraction,
-                            posed[0] if posed[0].ndim == 3 else None)
-                    views.append(posed)
-                self.map.optimise(camera, views, list(range(len(chunk))),
-                                  self.exposures(chunk) if config.sharp_through_exposures else None)
-        logger.info("sharpening at %dx%d: %d steps per view over %d views, +%d Gaussians -> %d", camera.width,
-                    camera.height, config.sharp_iterations_per_view, len(self.views), added, len(self.map))
+                    if kind is FrameBetween:
+                        poses = self.poses_over_exposure(item.world_from_camera, item.exposure_path, camera, images.depth_m)
+                        exposures.append(item.view.exposure)
+                    else:
+                        poses = self.view_poses(item, camera, images.depth_m)
+                        exposures.append(item.exposure)
+                        if round_index == 0:
+                            added += self.map.densify_colour_error(
+                                item.keyframe_id, camera, images, item.exposure if config.sharp_through_exposures else None,
+                                config.sharp_densify_error, config.sharp_densify_fraction, poses if poses.ndim == 3 else None)
+                    posed.append((poses, images))
+                through = config.sharp_through_exposures and all(exposure is not None for exposure in exposures)
+                self.map.optimise(camera, posed, list(range(len(chunk))), exposures if through else None)
+        logger.info("sharpening at %dx%d: %d steps per view over %d views and %d frames between them (at %dx%d), "
+                    "+%d Gaussians -> %d", cameras[MappingView].width, cameras[MappingView].height,
+                    config.sharp_iterations_per_view, len(self.views), len(frames_between), cameras[FrameBetween].width,
+                    cameras[FrameBetween].height, added, len(self.map))
 
     def rendering_poses(self, trajectory: Trajectory) -> np.ndarray:
         """(N, 4, 4) rendering pose of every frame of the frontend's ``trajectory`` (see the module doc).
@@ -485,6 +543,21 @@ class MappingStage:
         state = dict(state)
         self.map.load_state_dict(state.pop("map"))
         restore_attributes(self, _stage_tensors_to(state, self.device))
+
+
+def frames_between_views(view_frames: list[int], usable: np.ndarray, count: int) -> list[int]:
+    """Up to ``count`` frame indices strictly between each pair of consecutive ``view_frames`` (any order; after the
+    last one: up to ``len(usable)``) among those where ``usable`` (N,) bool holds, evenly spaced: the middles of
+    ``count`` equal shares of the usable frames there (all of them where there are ``count`` or fewer)."""
+    bounds = sorted(set(view_frames)) + [len(usable)]
+    chosen = []
+    for start, stop in zip(bounds, bounds[1:]):
+        candidates = [index for index in range(start + 1, stop) if usable[index]]
+        if len(candidates) <= count:
+            chosen += candidates
+        else:
+            chosen += [candidates[int((share + 0.5) * len(candidates) / count)] for share in range(count)]
+    return chosen
 
 
 def shuffled_chunks(items: list, chunk_size: int, rng: np.random.Generator) -> list[list]:
