@@ -477,11 +477,10 @@ class MappingStage:
         cameras = {kind: self.sequence.camera.scaled(scale) for kind, scale in scales.items()}
         added = 0
         for round_index in range(config.sharp_iterations_per_view):
-            chunks = shuffled_chunks(self.views, config.window_size, self._rng)
+            chunks = self.view_chunks()
             if frames_between:
-                chunks = shuffled_chunks(chunks + shuffled_chunks(list(frames_between), config.window_size, self._rng),
-                                         1, self._rng)
-                chunks = [chunk for chunk, in chunks]
+                chunks += shuffled_chunks(list(frames_between), config.window_size, self._rng)
+                chunks = [chunks[index] for index in self._rng.permutation(len(chunks))]
             for chunk in chunks:
                 kind = type(chunk[0])
                 camera = cameras[kind]
