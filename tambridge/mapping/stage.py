@@ -485,23 +485,23 @@ class MappingStage:
                 kind = type(chunk[0])
                 camera = cameras[kind]
                 # Frames are read again each round: holding every view at this resolution would not be bounded.
-                posed, exposures = [], []
+                posed, exposure_views = [], []
                 for item in chunk:
                     images = resize_frame(self.sequence[item.frame_index], scales[kind], self.device,
                                           self.sequence.valid_region)
                     if kind is FrameBetween:
                         poses = self.poses_over_exposure(item.world_from_camera, item.exposure_path, camera, images.depth_m)
-                        exposures.append(item.view.exposure)
+                        exposure_views.append(item.view)
                     else:
                         poses = self.view_poses(item, camera, images.depth_m)
-                        exposures.append(item.exposure)
+                        exposure_views.append(item)
                         if round_index == 0:
                             added += self.map.densify_colour_error(
                                 item.keyframe_id, camera, images, item.exposure if config.sharp_through_exposures else None,
                                 config.sharp_densify_error, config.sharp_densify_fraction, poses if poses.ndim == 3 else None)
                     posed.append((poses, images))
-                through = config.sharp_through_exposures and all(exposure is not None for exposure in exposures)
-                self.map.optimise(camera, posed, list(range(len(chunk))), exposures if through else None)
+                self.map.optimise(camera, posed, list(range(len(chunk))),
+                                  self.exposures(exposure_views) if config.sharp_through_exposures else None)
         logger.info("sharpening at %dx%d: %d steps per view over %d views and %d frames between them (at %dx%d), "
                     "+%d Gaussians -> %d", cameras[MappingView].width, cameras[MappingView].height,
                     config.sharp_iterations_per_view, len(self.views), len(frames_between), cameras[FrameBetween].width,
