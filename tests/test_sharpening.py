@@ -184,6 +184,23 @@ def test_frames_between_views_are_evenly_spaced_among_the_usable_ones():
     assert frames_between_views([0, 10], usable, 0) == []
 
 
+def test_frames_between_views_take_the_sharpest_frame_of_each_share_where_frames_are_scored():
+    usable = np.ones(30, bool)
+    usable[[5, 10, 15]] = False
+    sharpness = np.full(30, np.nan)
+    # Gap 0-12 (usable 1-4, 6-9, 11): shares 1-4 and 6-11; gap 12-20: shares 13-16 and 17-19; after 20: 21-24, 25-29.
+    sharpness[[1, 2, 3, 4]] = [5.0, 9.0, 1.0, 2.0]
+    sharpness[[6, 7, 8, 9, 11]] = [1.0, 1.0, 1.0, 1.0, 3.0]
+    sharpness[[14, 16]] = [4.0, 7.0]
+    sharpness[15] = 100.0  # not usable (held out): never chosen however sharp
+    sharpness[22] = 0.5
+    # Shares 17-19 and 25-29 hold no scored frame: their middles, as without sharpness.
+    assert frames_between_views([12, 0, 20], usable, 2, sharpness) == [2, 11, 16, 18, 22, 27]
+    assert frames_between_views([12, 0, 20], usable, 2, np.full(30, np.nan)) == frames_between_views([12, 0, 20], usable, 2)
+    # After 4: shares 6-18 and 19-29, whose sharpest scored frames are 16 and 22.
+    assert frames_between_views([0, 3, 4], usable, 2, sharpness) == [1, 2, 16, 22]
+
+
 @pytest.mark.slow
 def test_frames_between_views_sharpen_the_map_where_no_view_is(synthetic_sequence_dir, tmp_path, monkeypatch):
     """Fitted to the tracked frames between its views too, the map renders the held-out frames (every 3rd, never

@@ -58,9 +58,10 @@ class MapperConfig:
                                                 "round over the views each", NON_NEGATIVE)
     # The views alone are sparse samples of the path: a map fitted to them generalises poorly to the frames between
     # them, which a viewer shows. The evaluation's novel views are never among these frames.
-    sharp_frames_between: int = setting(0, "the sharpening pass also fits this many tracked frames between each "
-                                           "view and the next (evenly spaced; never a held-out evaluation frame)",
-                                        NON_NEGATIVE)
+    sharp_frames_between: int = setting(2, "the sharpening pass also fits this many tracked frames between each "
+                                           "view and the next, one from each equal share of the frames there (its "
+                                           "sharpest with the bridge on, else its middle; never a held-out "
+                                           "evaluation frame)", NON_NEGATIVE)
     # Half resolution scores as well as full at less cost (docs/benchmarks.md, "Frames between the views").
     sharp_between_resolution_scale: float = setting(0.5, "... fitted on frames resized by this (1: the camera's "
                                                          "resolution)", Range(0, 2, low_open=True))

@@ -7,11 +7,16 @@ rather than a NaN.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from pytorch_msssim import ssim as _ssim
+from torch.autograd.function import once_differentiable
+
+from tambridge.gaussians import ssim_kernel
 
 SSIM_WINDOW_PX = 11
 """Gaussian window of SSIM (Wang et al. 2004; 3DGS and SplaTAM use 11 px, sigma 1.5)."""
+SSIM_SIGMA_PX = 1.5
 
 
 def masked_l1(rendered: torch.Tensor, observed: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -29,13 +34,58 @@ def masked_l1(rendered: torch.Tensor, observed: torch.Tensor, mask: torch.Tensor
 
 
 def ssim(rendered_rgb: torch.Tensor, observed_rgb: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of two (H, W, 3) images in [0, 1] (11 px Gaussian window, valid-region mean, pytorch-msssim)."""
+    """Mean SSIM of two (H, W, 3) images in [0, 1] (11 px Gaussian window, valid-region mean), differentiable with
+    respect to ``rendered_rgb``: the numba kernels of :mod:`tambridge.gaussians.ssim_kernel` on the CPU, else
+    (a CUDA tensor, or ``observed_rgb`` that needs a gradient too) :func:`ssim_reference`, which they equal."""
     assert rendered_rgb.shape == observed_rgb.shape and rendered_rgb.shape[2] == 3, (rendered_rgb.shape, observed_rgb.shape)
-    height, width = rendered_rgb.shape[:2]
-    window = min(SSIM_WINDOW_PX, height, width)
-    window -= 1 - window % 2  # pytorch-msssim needs an odd window; tiny images get a smaller one
+    if rendered_rgb.device.type != "cpu" or observed_rgb.requires_grad:
+        return ssim_reference(rendered_rgb, observed_rgb)
+    return _CpuSsim.apply(rendered_rgb, observed_rgb)
+
+
+def ssim_reference(rendered_rgb: torch.Tensor, observed_rgb: torch.Tensor) -> torch.Tensor:
+    """:func:`ssim` by pytorch-msssim (any device, gradients to both images): the slow twin of the numba kernels."""
+    window = ssim_window_size(*rendered_rgb.shape[:2])
     to_batch = lambda image: image.permute(2, 0, 1)[None]  # noqa: E731 (N, C, H, W)
-    return _ssim(to_batch(rendered_rgb), to_batch(observed_rgb.to(rendered_rgb.dtype)), data_range=1.0, win_size=window)
+    return _ssim(to_batch(rendered_rgb), to_batch(observed_rgb.to(rendered_rgb.dtype)), data_range=1.0, win_size=window,
+                 win_sigma=SSIM_SIGMA_PX)
+
+
+def ssim_window_size(height: int, width: int) -> int:
+    """Taps of the SSIM window for an image of ``height`` x ``width``: 11, or for tiny images the largest odd size
+    that fits (pytorch-msssim needs an odd window)."""
+    window = min(SSIM_WINDOW_PX, height, width)
+    return window - (1 - window % 2)
+
+
+def ssim_window(taps: int) -> np.ndarray:
+    """The 1-D Gaussian window (taps,) float64, normalised, computed in float32 as pytorch-msssim computes it."""
+    coords = torch.arange(taps, dtype=torch.float32) - taps // 2
+    weights = torch.exp(-(coords ** 2) / (2 * SSIM_SIGMA_PX ** 2))
+    return (weights / weights.sum()).to(torch.float64).numpy()
+
+
+class _CpuSsim(torch.autograd.Function):
+    """Autograd wrapper of :mod:`ssim_kernel`: the gradient goes to the rendered image only."""
+
+    @staticmethod
+    def forward(ctx, rendered_rgb, observed_rgb):
+        to_planes = lambda image: np.ascontiguousarray(  # noqa: E731 (C, H, W), float32 or float64 as given
+            image.detach().to(rendered_rgb.dtype if rendered_rgb.dtype == torch.float64 else torch.float32)
+            .permute(2, 0, 1).numpy())
+        rendered, observed = to_planes(rendered_rgb), to_planes(observed_rgb)
+        window = ssim_window(ssim_window_size(*rendered_rgb.shape[:2]))
+        value, partials = ssim_kernel.ssim_forward(rendered, observed, window, 1.0, rendered_rgb.requires_grad)
+        ctx.kernel_inputs = (rendered, observed, window, partials)
+        ctx.dtype = rendered_rgb.dtype
+        return torch.tensor(value, dtype=rendered_rgb.dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_value):
+        rendered, observed, window, partials = ctx.kernel_inputs
+        grad = ssim_kernel.ssim_backward(rendered, observed, window, partials, float(grad_value))
+        return torch.from_numpy(grad).permute(1, 2, 0).to(ctx.dtype), None
 
 
 def map_loss(

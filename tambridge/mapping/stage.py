@@ -117,6 +117,8 @@ class MappingStage:
         self._frames_since_keyframe = 0
         # The latest tracked frames, oldest first (sharpness_median_frames of them, at least the window's).
         self._recent: list[Candidate] = []
+        # Every tracked frame's sharpness (bridge on), for the frames between the views that the sharpening pass fits.
+        self.frame_sharpness: dict[int, float] = {}
         self.blur_exposure_s = blur_exposure_s(bridge_config, sequence)
         # Each view's latest count of renders over its exposure at the mapping resolution (for the metrics).
         self.subposes: dict[int, int] = {}
@@ -224,6 +226,7 @@ class MappingStage:
             return
         # The per-frame share of the bridge's cost (a score where the read-ahead gave none).
         score = frame_sharpness(frame.rgb) if sharpness is None else sharpness
+        self.frame_sharpness[frame.index] = score
         self._recent.append(Candidate(frame.index, np.asarray(result.world_from_camera, np.float64), score,
                                       result.inlier_count))
         del self._recent[: max(0, len(self._recent) - max(bridge.sharpness_median_frames, bridge.sharpest_window + 1))]
@@ -445,18 +448,24 @@ class MappingStage:
 
     def frames_between(self, tracking: FrontendResult, held_out: Collection[int]) -> list[FrameBetween]:
         """The tracked frames the sharpening pass fits besides the views: ``mapper.sharp_frames_between`` between
-        each view's frame and the next one's (after the last view: up to the sequence's end), evenly spaced among
-        the tracked frames there that are not in ``held_out`` (:func:`frames_between_views`), each at its rendering
-        pose, rendered over its exposure where blur modelling is on."""
+        each view's frame and the next one's (after the last view: up to the sequence's end), one from each equal
+        share of the tracked frames there that are not in ``held_out`` (:func:`frames_between_views`): with the
+        bridge on the share's sharpest, else its middle; each at its rendering pose, rendered over its exposure
+        where blur modelling is on."""
         if not self.views or not self.mapper_config.sharp_frames_between:
             return []
         usable = np.asarray(tracking.tracked, bool).copy()
         usable[[index for index in held_out if 0 <= index < len(usable)]] = False
+        sharpness = None
+        if self.bridge_config.enabled:
+            sharpness = np.full(len(usable), np.nan)
+            scored = [index for index in self.frame_sharpness if index < len(usable)]
+            sharpness[scored] = [self.frame_sharpness[index] for index in scored]
         poses = tracking.trajectory.world_from_camera
         timestamps = self.sequence.timestamps_s
         frames = []
         for index in frames_between_views([view.frame_index for view in self.views], usable,
-                                          self.mapper_config.sharp_frames_between):
+                                          self.mapper_config.sharp_frames_between, sharpness):
             path = None
             if self.blur_exposure_s:
                 neighbours = [(float(timestamps[other]), poses[other]) for other in (index - 1, index + 1)
@@ -544,18 +553,25 @@ class MappingStage:
         restore_attributes(self, _stage_tensors_to(state, self.device))
 
 
-def frames_between_views(view_frames: list[int], usable: np.ndarray, count: int) -> list[int]:
+def frames_between_views(view_frames: list[int], usable: np.ndarray, count: int,
+                         sharpness: np.ndarray | None = None) -> list[int]:
     """Up to ``count`` frame indices strictly between each pair of consecutive ``view_frames`` (any order; after the
-    last one: up to ``len(usable)``) among those where ``usable`` (N,) bool holds, evenly spaced: the middles of
-    ``count`` equal shares of the usable frames there (all of them where there are ``count`` or fewer)."""
+    last one: up to ``len(usable)``) among those where ``usable`` (N,) bool holds, one from each of ``count`` equal
+    shares of the usable frames there (all of them where there are ``count`` or fewer): the share's middle frame, or
+    with ``sharpness`` (N,), each frame's :func:`tambridge.images.sharpness` (NaN: not scored), its sharpest scored
+    frame (the middle where none is scored)."""
     bounds = sorted(set(view_frames)) + [len(usable)]
     chosen = []
     for start, stop in zip(bounds, bounds[1:]):
         candidates = [index for index in range(start + 1, stop) if usable[index]]
         if len(candidates) <= count:
             chosen += candidates
-        else:
-            chosen += [candidates[int((share + 0.5) * len(candidates) / count)] for share in range(count)]
+            continue
+        for share in range(count):
+            members = candidates[share * len(candidates) // count : (share + 1) * len(candidates) // count]
+            scored = [] if sharpness is None else [index for index in members if np.isfinite(sharpness[index])]
+            chosen.append(max(scored, key=lambda index: sharpness[index]) if scored
+                          else candidates[int((share + 0.5) * len(candidates) / count)])
     return chosen
 
 
