@@ -119,6 +119,21 @@ def test_frames_between_are_fitted_at_their_own_resolution_in_chunks_of_their_ow
                                                                         ((80, 60), 3), ((80, 60), 1)] * 2)
     assert all(shapes == {(size[1], size[0], 3)} for size, shapes, _ in calls)
 
+def test_with_the_bridge_on_the_frames_between_are_the_sharpest_the_tracker_scored(synthetic_sequence_dir, tmp_path):
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
+    stage, _ = coarse_stage(sequence, tmp_path, sharp_frames_between=1)
+    tracking = types.SimpleNamespace(trajectory=sequence.ground_truth, tracked=np.ones(len(sequence), bool))
+    held_out = range(0, len(sequence), 3)
+    # Bridge off (the ablation): the middles of the usable frames between the views at 0, 6, 12 and 18.
+    assert [frame.frame_index for frame in stage.frames_between(tracking, held_out)] == [4, 10, 16, 22]
+    stage.bridge_config = BridgeConfig()
+    # Scores as on_tracked records them; frame 9 is held out, so 8 is the sharpest usable frame of 7-11.
+    stage.frame_sharpness = {index: 1.0 for index in range(len(sequence))} | {2: 5.0, 8: 3.0, 9: 9.0, 23: 2.0}
+    frames = stage.frames_between(tracking, held_out)
+    assert [frame.frame_index for frame in frames] == [2, 8, 13, 23]
+    np.testing.assert_allclose(frames[1].world_from_camera, stage.rendering_pose(8, sequence.ground_truth.world_from_camera[8]))
+
+
 @pytest.mark.slow
 def test_sharpening_against_the_frames_as_recorded_fits_what_a_viewer_shows(synthetic_sequence_dir, tmp_path):
     """Exposures that drifted to a 25 % gain (as auto exposure drives them on real data) leave the map's own colours
