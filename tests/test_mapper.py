@@ -90,6 +90,38 @@ def test_adam_step_matches_torch_adam_when_every_gaussian_has_a_gradient():
     assert torch.equal(steps, torch.full((10,), 3.0))
 
 
+def test_adam_step_moves_only_the_gaussians_with_a_gradient_as_torch_adam_moves_them():
+    """Rows 0-5 get gradients in every step (rows 4-5 after the first in the colour alone: their other fields'
+    moments decay and still move them, as torch's do), rows 6-9 in none: those keep their parameters, moments and
+    step counts."""
+    gaussian_map = small_map([np.eye(4)], [10])
+    params = {name: value.clone() for name, value in gaussian_map._params.items()}
+    before = {name: value.clone() for name, value in params.items()}
+    reference = {name: value[:6].clone().requires_grad_(True) for name, value in params.items()}
+    optimisers = [torch.optim.Adam([reference[name]], lr=gaussian_map._learning_rates[name], eps=ADAM_EPS) for name in reference]
+    exp_avg = {name: torch.zeros_like(value) for name, value in params.items()}
+    exp_avg_sq = {name: torch.zeros_like(value) for name, value in params.items()}
+    steps = torch.zeros(10)
+    generator = torch.Generator().manual_seed(1)
+    for step in range(3):
+        grads = {name: torch.randn(value.shape, generator=generator) for name, value in params.items()}
+        for name in grads:
+            grads[name][6:] = 0.0
+            if name != "rgb" and step > 0:
+                grads[name][4:6] = 0.0
+        steps = gaussian_map._adam_step(params, grads, exp_avg, exp_avg_sq, steps)
+        for name, optimiser in zip(reference, optimisers):
+            reference[name].grad = grads[name][:6]
+            optimiser.step()
+        reference["rgb"].data.clamp_(0.0, 1.0)
+    for name in params:
+        torch.testing.assert_close(params[name][:6], reference[name].detach(), atol=1e-5, rtol=1e-4)
+        assert torch.equal(params[name][6:], before[name][6:])
+        assert not torch.equal(params[name][4:6], before[name][4:6])
+        assert not exp_avg[name][6:].any() and not exp_avg_sq[name][6:].any()
+    assert steps.tolist() == [3.0] * 6 + [0.0] * 4
+
+
 def test_gaussians_outside_the_view_do_not_move():
     camera = default_camera(40, 30)
     behind = exp_se3(np.array([0.0, 0.0, 0.0, 0.0, np.pi, 0.0]))  # anchor 1 faces away: its Gaussians are behind

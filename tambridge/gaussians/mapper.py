@@ -423,22 +423,29 @@ class GaussianMap:
         return losses
 
     def _adam_step(self, params: dict, grads: dict, exp_avg: dict, exp_avg_sq: dict, steps: torch.Tensor) -> torch.Tensor:
-        """One Adam step (Kingma & Ba 2015), in place, on the Gaussians with a gradient; returns their step counts (M,)."""
+        """One Adam step (Kingma & Ba 2015), in place, on the Gaussians with a gradient; returns their step counts (M,).
+
+        A Gaussian without one has a zero gradient in every field: with its decay factors and step size set to 1, 1
+        and 0 the same in-place expressions leave its moments and parameters as they were, so no masked copies are
+        made (torch.optim.Adam is the twin the tests compare with)."""
         beta1, beta2 = ADAM_BETAS
         touched = torch.zeros(len(steps), dtype=torch.bool, device=steps.device)
         for grad in grads.values():
-            touched |= grad.reshape(len(steps), -1).abs().sum(dim=1) > 0
-        steps = steps + touched.to(steps.dtype)
-        correction1 = 1.0 - beta1 ** steps.clamp(min=1)
-        correction2 = 1.0 - beta2 ** steps.clamp(min=1)
+            touched |= (grad.reshape(len(steps), -1) != 0).any(dim=1)
+        mask = touched.to(steps.dtype)
+        steps = steps + mask
+        decay1 = 1.0 - (1.0 - beta1) * mask
+        decay2 = 1.0 - (1.0 - beta2) * mask
+        step_size = mask / (1.0 - beta1 ** steps.clamp(min=1))
+        root_correction = torch.rsqrt(1.0 - beta2 ** steps.clamp(min=1))
         with torch.no_grad():
             for name, grad in grads.items():
                 shape = (-1,) + (1,) * (grad.dim() - 1)
-                mask = touched.view(shape)
-                exp_avg[name] = torch.where(mask, beta1 * exp_avg[name] + (1 - beta1) * grad, exp_avg[name])
-                exp_avg_sq[name] = torch.where(mask, beta2 * exp_avg_sq[name] + (1 - beta2) * grad * grad, exp_avg_sq[name])
-                update = (exp_avg[name] / correction1.view(shape)) / (torch.sqrt(exp_avg_sq[name] / correction2.view(shape)) + ADAM_EPS)
-                params[name] -= torch.where(mask, self._learning_rates[name] * update, torch.zeros_like(update))
+                exp_avg[name].mul_(decay1.view(shape)).add_(grad, alpha=1.0 - beta1)
+                exp_avg_sq[name].mul_(decay2.view(shape)).addcmul_(grad, grad, value=1.0 - beta2)
+                denominator = exp_avg_sq[name].sqrt().mul_(root_correction.view(shape)).add_(ADAM_EPS)
+                scaled = exp_avg[name] * (self._learning_rates[name] * step_size).view(shape)
+                params[name].addcdiv_(scaled, denominator, value=-1.0)
             # Colours are optimised directly (as SplaTAM does) and kept in the displayable range.
             params["rgb"].clamp_(0.0, 1.0)
         return steps
