@@ -68,58 +68,40 @@ def test_a_map_and_camera_moved_together_render_the_same():
     torch.testing.assert_close(after.depth_m, before.depth_m, atol=1e-5, rtol=0)
 
 
-def test_adam_step_matches_torch_adam_when_every_gaussian_has_a_gradient():
+@pytest.mark.parametrize("with_gradient, colour_only", [(10, 0), (6, 2)])
+def test_adam_step_moves_the_gaussians_with_a_gradient_as_torch_adam_and_no_other(with_gradient, colour_only):
+    """The first ``with_gradient`` of 10 Gaussians get gradients in every step (the last ``colour_only`` of them, after
+    the first step, in the colour alone: their other fields' moments decay and still move them, as torch's do); the
+    others get none and keep their parameters, moments and step counts."""
     gaussian_map = small_map([np.eye(4)], [10])
     params = {name: value.clone() for name, value in gaussian_map._params.items()}
-    reference = {name: value.clone().requires_grad_(True) for name, value in params.items()}
+    before = {name: value.clone() for name, value in params.items()}
+    reference = {name: value[:with_gradient].clone().requires_grad_(True) for name, value in params.items()}
     optimisers = [torch.optim.Adam([reference[name]], lr=gaussian_map._learning_rates[name], eps=ADAM_EPS) for name in reference]
     exp_avg = {name: torch.zeros_like(value) for name, value in params.items()}
     exp_avg_sq = {name: torch.zeros_like(value) for name, value in params.items()}
     steps = torch.zeros(10)
     generator = torch.Generator().manual_seed(0)
-    for _ in range(3):
+    for step in range(3):
         grads = {name: torch.randn(value.shape, generator=generator) for name, value in params.items()}
+        for name in grads:
+            grads[name][with_gradient:] = 0.0
+            if name != "rgb" and step > 0:
+                grads[name][with_gradient - colour_only : with_gradient] = 0.0
         steps = gaussian_map._adam_step(params, grads, exp_avg, exp_avg_sq, steps)
         for name, optimiser in zip(reference, optimisers):
-            reference[name].grad = grads[name]
+            reference[name].grad = grads[name][:with_gradient]
             optimiser.step()
         reference["rgb"].data.clamp_(0.0, 1.0)
     for name in params:
         # Same maths, float32 evaluated in another order (torch folds the bias corrections into the step size).
-        torch.testing.assert_close(params[name], reference[name].detach(), atol=1e-5, rtol=1e-4)
-    assert torch.equal(steps, torch.full((10,), 3.0))
-
-
-def test_adam_step_moves_only_the_gaussians_with_a_gradient_as_torch_adam_moves_them():
-    """Rows 0-5 get gradients in every step (rows 4-5 after the first in the colour alone: their other fields'
-    moments decay and still move them, as torch's do), rows 6-9 in none: those keep their parameters, moments and
-    step counts."""
-    gaussian_map = small_map([np.eye(4)], [10])
-    params = {name: value.clone() for name, value in gaussian_map._params.items()}
-    before = {name: value.clone() for name, value in params.items()}
-    reference = {name: value[:6].clone().requires_grad_(True) for name, value in params.items()}
-    optimisers = [torch.optim.Adam([reference[name]], lr=gaussian_map._learning_rates[name], eps=ADAM_EPS) for name in reference]
-    exp_avg = {name: torch.zeros_like(value) for name, value in params.items()}
-    exp_avg_sq = {name: torch.zeros_like(value) for name, value in params.items()}
-    steps = torch.zeros(10)
-    generator = torch.Generator().manual_seed(1)
-    for step in range(3):
-        grads = {name: torch.randn(value.shape, generator=generator) for name, value in params.items()}
-        for name in grads:
-            grads[name][6:] = 0.0
-            if name != "rgb" and step > 0:
-                grads[name][4:6] = 0.0
-        steps = gaussian_map._adam_step(params, grads, exp_avg, exp_avg_sq, steps)
-        for name, optimiser in zip(reference, optimisers):
-            reference[name].grad = grads[name][:6]
-            optimiser.step()
-        reference["rgb"].data.clamp_(0.0, 1.0)
-    for name in params:
-        torch.testing.assert_close(params[name][:6], reference[name].detach(), atol=1e-5, rtol=1e-4)
-        assert torch.equal(params[name][6:], before[name][6:])
-        assert not torch.equal(params[name][4:6], before[name][4:6])
-        assert not exp_avg[name][6:].any() and not exp_avg_sq[name][6:].any()
-    assert steps.tolist() == [3.0] * 6 + [0.0] * 4
+        torch.testing.assert_close(params[name][:with_gradient], reference[name].detach(), atol=1e-5, rtol=1e-4)
+        assert torch.equal(params[name][with_gradient:], before[name][with_gradient:])
+        assert not exp_avg[name][with_gradient:].any() and not exp_avg_sq[name][with_gradient:].any()
+        if colour_only:
+            assert not torch.equal(params[name][with_gradient - colour_only : with_gradient],
+                                   before[name][with_gradient - colour_only : with_gradient])
+    assert steps.tolist() == [3.0] * with_gradient + [0.0] * (10 - with_gradient)
 
 
 def test_gaussians_outside_the_view_do_not_move():
