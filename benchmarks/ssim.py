@@ -45,10 +45,9 @@ def timed_ms(function, rendered: torch.Tensor, observed: torch.Tensor, repeats: 
     return 1e3 * statistics.median(times)
 
 
-def measure(width: int, height: int, repeats: int) -> dict:
-    generator = torch.Generator().manual_seed(0)
-    observed = torch.rand(height, width, 3, generator=generator)
-    rendered = (observed + 0.1 * torch.randn(height, width, 3, generator=generator)).clamp(0, 1)
+def kernel_and_twin(rendered: torch.Tensor, observed: torch.Tensor) -> tuple[list[float], list[torch.Tensor]]:
+    """SSIM of ``rendered`` against ``observed`` (H, W, 3) and its gradient to ``rendered``, by the kernel and by the
+    twin, in that order."""
     values, grads = [], []
     for function in (ssim, ssim_reference):
         leaf = rendered.clone().requires_grad_(True)
@@ -56,6 +55,14 @@ def measure(width: int, height: int, repeats: int) -> dict:
         value.backward()
         values.append(float(value.detach()))
         grads.append(leaf.grad)
+    return values, grads
+
+
+def measure(width: int, height: int, repeats: int) -> dict:
+    generator = torch.Generator().manual_seed(0)
+    observed = torch.rand(height, width, 3, generator=generator)
+    rendered = (observed + 0.1 * torch.randn(height, width, 3, generator=generator)).clamp(0, 1)
+    values, grads = kernel_and_twin(rendered, observed)
     kernel_ms = timed_ms(ssim, rendered, observed, repeats)
     twin_ms = timed_ms(ssim_reference, rendered, observed, repeats)
     return {"resolution": f"{width}x{height}", "kernel_ms": kernel_ms, "twin_ms": twin_ms,

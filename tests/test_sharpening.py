@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from tambridge.bridge.blur import exposure_path
 from tambridge.bridge.config import BridgeConfig
 from tambridge.gaussians.config import MapperConfig
 from tambridge.gaussians.mapper import GaussianMap, ViewExposure, ViewImages
@@ -132,6 +133,16 @@ def test_with_the_bridge_on_the_frames_between_are_the_sharpest_the_tracker_scor
     frames = stage.frames_between(tracking, held_out)
     assert [frame.frame_index for frame in frames] == [2, 8, 13, 23]
     np.testing.assert_allclose(frames[1].world_from_camera, stage.rendering_pose(8, sequence.ground_truth.world_from_camera[8]))
+    # With blur modelling on, a frame's path runs through its tracked neighbours (held out or not); the last frame
+    # has only the one before it.
+    stage.blur_exposure_s = 0.03
+    frames = stage.frames_between(tracking, held_out)
+    poses, times = sequence.ground_truth.world_from_camera, sequence.timestamps_s
+    for frame, neighbours in zip(frames, ([1, 3], [7, 9], [12, 14], [22])):
+        expected = exposure_path(poses[frame.frame_index], float(times[frame.frame_index]),
+                                 [(float(times[other]), poses[other]) for other in neighbours], 0.03)
+        np.testing.assert_allclose(frame.exposure_path.times_s, expected.times_s)
+        np.testing.assert_allclose(frame.exposure_path.frame_from_tracked, expected.frame_from_tracked, atol=1e-12)
 
 
 @pytest.mark.slow

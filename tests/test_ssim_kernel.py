@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmarks.ssim import kernel_and_twin
 from tambridge.gaussians.losses import ssim, ssim_reference
 
 
@@ -21,13 +22,7 @@ def image_pair(height: int, width: int, dtype: torch.dtype, seed: int = 0) -> tu
 @pytest.mark.parametrize("size", [(120, 160), (61, 83), (30, 40), (7, 9), (4, 6)])
 def test_ssim_and_its_gradient_equal_pytorch_msssim(size, dtype):
     rendered, observed = image_pair(*size, dtype)
-    values, grads = [], []
-    for function in (ssim, ssim_reference):
-        leaf = rendered.clone().requires_grad_(True)
-        value = function(leaf, observed)
-        value.backward()
-        values.append(float(value.detach()))
-        grads.append(leaf.grad)
+    values, grads = kernel_and_twin(rendered, observed)
     tolerance = 1e-6 if dtype == torch.float32 else 1e-12
     assert values[0] == pytest.approx(values[1], abs=tolerance)
     assert 0.2 < values[0] < 0.99  # a real difference between the images, not a trivial 1

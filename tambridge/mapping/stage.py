@@ -23,7 +23,7 @@ import collections
 import contextlib
 import dataclasses
 import logging
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 
 import cv2
 import numpy as np
@@ -153,12 +153,16 @@ class MappingStage:
                                                      self.bridge_config.blur_max_subposes)
         return world_from_camera if count == 1 else world_from_camera @ path.poses(count)
 
-    def exposure_path_of(self, frame_index: int, world_from_frame: np.ndarray) -> ExposurePath | None:
+    def exposure_path_of(self, frame_index: int, world_from_frame: np.ndarray,
+                         tracked_poses: Mapping[int, np.ndarray] | None = None) -> ExposurePath | None:
         """The exposure path of a frame tracked at ``world_from_frame``, through the tracked frames just before and
-        after it that the bridge holds (:func:`exposure_path`); None with blur modelling off."""
+        after it (:func:`exposure_path`): those of ``tracked_poses`` (frame index -> 4x4 ``world_from_camera``), else
+        those the bridge holds; None with blur modelling off."""
+        if tracked_poses is None:
+            tracked_poses = {candidate.frame_index: candidate.world_from_camera for candidate in self._recent}
         timestamps = self.sequence.timestamps_s
-        neighbours = [(float(timestamps[candidate.frame_index]), candidate.world_from_camera) for candidate in self._recent
-                      if abs(candidate.frame_index - frame_index) == 1]
+        neighbours = [(float(timestamps[other]), tracked_poses[other]) for other in (frame_index - 1, frame_index + 1)
+                      if other in tracked_poses]
         return exposure_path(np.asarray(world_from_frame, np.float64), float(timestamps[frame_index]), neighbours,
                              self.blur_exposure_s)
 
@@ -462,16 +466,13 @@ class MappingStage:
             scored = [index for index in self.frame_sharpness if index < len(usable)]
             sharpness[scored] = [self.frame_sharpness[index] for index in scored]
         poses = tracking.trajectory.world_from_camera
-        timestamps = self.sequence.timestamps_s
         frames = []
         for index in frames_between_views([view.frame_index for view in self.views], usable,
                                           self.mapper_config.sharp_frames_between, sharpness):
-            path = None
-            if self.blur_exposure_s:
-                neighbours = [(float(timestamps[other]), poses[other]) for other in (index - 1, index + 1)
-                              if 0 <= other < len(poses) and tracking.tracked[other]]
-                path = exposure_path(poses[index], float(timestamps[index]), neighbours, self.blur_exposure_s)
-            frames.append(FrameBetween(index, self.rendering_pose(index, poses[index]), path, self.anchor_view(index)))
+            neighbours = {other: poses[other] for other in (index - 1, index + 1)
+                          if 0 <= other < len(usable) and tracking.tracked[other]}
+            frames.append(FrameBetween(index, self.rendering_pose(index, poses[index]),
+                                       self.exposure_path_of(index, poses[index], neighbours), self.anchor_view(index)))
         return frames
 
     def sharpen(self, frames_between: list[FrameBetween] = ()) -> None:
