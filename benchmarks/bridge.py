@@ -5,6 +5,7 @@ pose refinement.
     python benchmarks/bridge.py                                  # blurred synthetic, fr1/xyz 300, 7-Scenes 300
     python benchmarks/bridge.py --sequences synthetic --refine   # also a run with bridge.refine_poses=true
     python benchmarks/bridge.py --sequences synthetic --synthetic DIR --oracle   # an existing sequence; + oracle case
+    python benchmarks/bridge.py --sequences fr1_xyz --set-all seed=1 --name seed1   # a repeat at another seed
 
 Every case is one in-process ``reconstruct`` (default preset plus ``--set`` overrides) under
 benchmarks/results/runs/bridge/. Renders are scored as the run's evaluation renders them (full resolution, the
@@ -209,6 +210,8 @@ def main() -> None:
     parser.add_argument("--max-frames", type=int, default=None, help="instead of each sequence's own count")
     parser.add_argument("--refine", action="store_true", help="add a case with bridge.refine_poses=true")
     parser.add_argument("--set", action="append", default=[], help="a config override for every case but off")
+    parser.add_argument("--set-all", action="append", default=[],
+                        help="a config override for every case, off included (a repeat at another seed: seed=1)")
     parser.add_argument("--reuse-off", action="store_true", help="take the off case from bridge.json instead of running it")
     parser.add_argument("--name", default="", help="store the sequence's results under KEY_NAME (a variant)")
     parser.add_argument("--synthetic", type=Path, default=None,
@@ -220,6 +223,8 @@ def main() -> None:
                         help="with one case in --cases: store it under this name beside the entry's other cases (a "
                              "variant of it, with --set, scored against the same off case)")
     args = parser.parse_args()
+    if args.reuse_off and args.set_all:
+        parser.error("--reuse-off takes the off case run without --set-all's overrides; run it again instead")
     if args.label and (not args.cases or "," in args.cases):
         parser.error("--label needs exactly one case in --cases")
     results = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {"sequences": {}}
@@ -248,7 +253,8 @@ def main() -> None:
             stored = args.label or name
             print(f"{key}: bridge {stored}", flush=True)
             cases[stored] = run_case(f"{result_key}_{stored}", folder,
-                                   settings_of(sequence_settings) + case_settings + (args.set if name != "off" else []),
+                                   settings_of(sequence_settings) + args.set_all + case_settings
+                                   + (args.set if name != "off" else []),
                                    max_frames, camera, targets, SYNTHETIC if name == "oracle" else None)
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
         # Read again: another run of this benchmark may have written meanwhile. Cases not run this time keep the
