@@ -11,9 +11,11 @@ field requiring gradients and back-propagates an L1 loss on colour and depth aga
 Each (size, backend) runs in its own process, so its peak memory is its own: the growth of the process's peak RSS
 (VmHWM, reset after the scene is built) over its RSS just before the first render. Wall time is the median over repeats after one warm-up;
 cpu_s is the process CPU time of the same calls (wall x cores used, when the machine is not shared). For the CPU
-kernel, every row also has the wall and CPU time per stage (projection forward in torch, binning, forward compositing,
-reverse pass, per-Gaussian gradient sum, and the rest: the projection's backward, packing, the loss, autograd); the
-CPU times are the figures to compare when other processes share the cores.
+kernel, every row also has the wall and CPU time per stage (projection, its backward, binning, forward compositing,
+reverse pass, per-Gaussian gradient sum, and the rest: conversions, the loss, autograd); the CPU times are the
+figures to compare when other processes share the cores. The CPU kernel projects in numba, forward and backward (a
+render with no pose twist, as the mapper's); the rows ``cpu_torch_projection`` (forward+backward only) project in
+torch instead, as a render whose pose is optimised does: the numba projection's twin, its backward inside "the rest".
 The torch reference is :func:`tambridge.gaussians.reference.composite_reference` tiled by 16 px (per-tile
 culling is exact; the untiled form would need an N x H x W tensor: 15 GB and more at these sizes).
 
@@ -109,20 +111,18 @@ def measure(data: str, count: int, resolution: tuple[int, int], backend: str, mo
     import torch
 
     from tambridge.gaussians import GaussianTensors, cpu_kernel, rasterizer, render
-    from tambridge.gaussians.model import camera_frame_means, project_to_screen
     from tambridge.gaussians.reference import composite_reference
 
     gaussians, camera, world_from_camera, target_rgb, target_depth = build_scene(Path(data), count, resolution[0])
     background = torch.zeros(3)
     stage_s: dict[str, float] = {}
     stage_cpu_s: dict[str, float] = {}
-    if backend == "cpu":
+    if backend in ("cpu", "cpu_torch_projection"):
         # Python-level entry points of each phase, looked up at call time by their callers, so wrapping them here
-        # times them inside render(): projection (torch forward only; its backward is in torch_and_glue), binning,
-        # compositing, the reverse pass and the per-Gaussian gradient reduction.
-        # Without autograd the projection is cpu_kernel.project (one numba pass); with it, torch.
+        # times them inside render(): projection (numba; in torch its forward only, its backward is in
+        # torch_and_glue), binning, compositing, the reverse pass and the per-Gaussian gradient reduction.
         stages = [(rasterizer, "camera_frame_means", "projection"), (rasterizer, "project_to_screen", "projection")]
-        stages += [(cpu_kernel, "project", "projection")]
+        stages += [(cpu_kernel, "project", "projection"), (cpu_kernel, "project_backward", "projection_backward")]
         stages += [(cpu_kernel, "bin_tiles", "binning"), (cpu_kernel, "composite_forward", "forward")]
         stages += [(cpu_kernel, "_backward", "backward"), (cpu_kernel, "_sum_entries", "gradient_sum")]
         for module, name, stage in stages:
@@ -141,7 +141,10 @@ def measure(data: str, count: int, resolution: tuple[int, int], backend: str, mo
     def render_once(splats: GaussianTensors):
         if backend == "cpu":
             return render(splats, camera, world_from_camera, background_rgb=(0.0, 0.0, 0.0), backend="cpu")
-        screen = project_to_screen(splats, camera_frame_means(splats, torch.from_numpy(world_from_camera)), camera)
+        # Through the module's names, which the stage timers wrap.
+        screen = rasterizer.project_to_screen(splats, rasterizer.camera_frame_means(splats, torch.from_numpy(world_from_camera)), camera)
+        if backend == "cpu_torch_projection":
+            return rasterizer.composite_cpu(screen, camera.width, camera.height, background)
         return composite_reference(screen, camera.width, camera.height, background, tile_px=16)
 
     def step(splats: GaussianTensors):
@@ -161,7 +164,7 @@ def measure(data: str, count: int, resolution: tuple[int, int], backend: str, mo
     gc.collect()
     reset_peak_rss()
     baseline_mb = status_mb("VmRSS")
-    if backend == "cpu":
+    if backend != "reference":
         step(gaussians)  # warm-up at full size (allocator pools); the torch reference takes seconds, once is enough
     stage_s.clear()
     stage_cpu_s.clear()
@@ -227,6 +230,10 @@ def main() -> None:
             for mode in ("forward", "forward+backward"):
                 fast = run_isolated(str(args.data), count, (width, height), "cpu", mode, args.repeats)
                 rows.append(fast)
+                if mode == "forward+backward":
+                    twin = run_isolated(str(args.data), count, (width, height), "cpu_torch_projection", mode, args.repeats)
+                    twin["speedup_of_cpu_kernel"] = twin["wall_s_median"] / fast["wall_s_median"]
+                    rows.append(twin)
                 if count > args.reference_max_gaussians:
                     skipped.append({"resolution": f"{width}x{height}", "gaussians": count, "mode": mode,
                                     "reason": f"torch reference skipped above {args.reference_max_gaussians} Gaussians"})
@@ -244,21 +251,22 @@ def main() -> None:
     print("\n" + header + "\n" + "-" * len(header))
     for row in rows:
         speedup = ""
-        if row["backend"] == "reference":
-            speedup = f"x{row['speedup_of_cpu_kernel']:.1f}"
+        if row["backend"] != "cpu":
+            speedup = f"x{row['speedup_of_cpu_kernel']:.2f}"
         print(
             f"{row['resolution']:<10} {row['gaussians']:>9} {row['mode']:<16} {row['backend']:<9} "
             f"{row['wall_s_median']:>8.4f} {row['cpu_s_median']:>8.3f} {1 / row['wall_s_median']:>7.1f} "
             f"{row['peak_memory_mb']:>8.0f} {speedup:>7}"
         )
-    stages = ("projection", "binning", "forward", "backward", "gradient_sum", "torch_and_glue")
-    header = f"{'resolution':<10} {'gaussians':>9} {'mode':<16} " + " ".join(f"{stage:>14}" for stage in stages)
+    stages = ("projection", "projection_backward", "binning", "forward", "backward", "gradient_sum", "torch_and_glue")
+    header = f"{'resolution':<10} {'gaussians':>9} {'mode':<16} {'projection':<10} " + " ".join(f"{stage:>14}" for stage in stages)
     print("\nCPU kernel, CPU time per stage (ms; wall time per stage is in the JSON)\n" + header + "\n" + "-" * len(header))
     for row in rows:
-        if row["backend"] == "cpu":
+        if row["backend"] != "reference":
             times = row["stage_cpu_s_mean"]
             cells = " ".join(f"{1000 * times[stage]:>14.1f}" if stage in times else f"{'-':>14}" for stage in stages)
-            print(f"{row['resolution']:<10} {row['gaussians']:>9} {row['mode']:<16} {cells}")
+            projection = "torch" if row["backend"] == "cpu_torch_projection" else "numba"
+            print(f"{row['resolution']:<10} {row['gaussians']:>9} {row['mode']:<16} {projection:<10} {cells}")
     for row in skipped:
         print(f"skipped: {row['resolution']} {row['gaussians']} {row['mode']}: {row['reason']}")
     print("dense (untiled) reference: skipped at every size, an N x H x W float32 tensor is >= 15 GB at 50k / 320x240")

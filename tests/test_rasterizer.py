@@ -128,14 +128,17 @@ def test_projection_kernel_matches_torch_projection(dtype):
     np.testing.assert_allclose(packed[:, k.OPACITY], screen.opacity.numpy(), rtol=4 * eps, atol=0)
 
 
-@pytest.mark.parametrize("backend", ["cpu", "reference"])
-def test_gradients_match_finite_differences(backend):
-    """Directional derivatives along random directions, float64, every field and the pose twist."""
+@pytest.mark.parametrize("backend,with_pose", [("cpu", True), ("reference", True), ("cpu", False)])
+def test_gradients_match_finite_differences(backend, with_pose):
+    """Directional derivatives along random directions, float64, every field and the pose twist; without a pose
+    twist the CPU backend projects in numba (its own backward, cpu_kernel.project_backward)."""
     camera = camera_of(24, 18)
     world_from_camera = look_at(np.array([0.05, 0.1, -0.1]), np.array([0.0, 0.0, 2.0]), up=np.array([0.0, -1.0, 0.0]))
     gaussians = requiring_grad(random_gaussians(40, seed=7, dtype=torch.float64, radius_m=(0.05, 0.15)))
     pose_delta = torch.tensor([0.01, -0.02, 0.015, 0.02, -0.01, 0.03], dtype=torch.float64, requires_grad=True)
-    parameters = [getattr(gaussians, name) for name in FIELDS] + [pose_delta]
+    if not with_pose:
+        world_from_camera, pose_delta = world_from_camera @ exp_se3(pose_delta.detach().numpy()), None
+    parameters = [getattr(gaussians, name) for name in FIELDS] + ([pose_delta] if with_pose else [])
     grads = torch.autograd.grad(scalar_loss(gaussians, camera, world_from_camera, pose_delta, backend), parameters)
     generator = torch.Generator().manual_seed(3)
     step = 1e-6
@@ -150,6 +153,37 @@ def test_gradients_match_finite_differences(backend):
         numeric = (values[0] - values[1]) / (2 * step)
         analytic = (grad * direction).sum().item()
         assert abs(numeric - analytic) <= 1e-5 * max(1.0, abs(numeric)), (name, numeric, analytic)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_numba_projection_gradients_match_torch_projection(dtype):
+    """A render with no pose twist projects in numba under autograd (rasterizer._CpuProject): the same maps and the
+    same gradients of every field as the torch projection (camera_frame_means, project_to_screen), its twin, to the
+    dtype's rounding; Gaussians behind the near plane and beyond the EWA Jacobian's limits included."""
+    camera = camera_of(70, 45)
+    world_from_camera = look_at(np.array([0.1, -0.2, -0.3]), np.array([0.0, 0.0, 2.0]), up=np.array([0.0, -1.0, 0.0]))
+    base = random_gaussians(2000, seed=5, dtype=dtype, radius_m=(0.01, 0.1))
+    base.means_m[-100:, 0] *= 3.0  # some outside the field of view, where xn is clamped and their footprints still reach in
+    background = torch.tensor(BACKGROUND, dtype=dtype)
+    results = []
+    for numba_projection in (True, False):
+        gaussians = requiring_grad(base)
+        if numba_projection:
+            out = render(gaussians, camera, world_from_camera, None, BACKGROUND, backend="cpu")
+        else:
+            screen = project_to_screen(gaussians, camera_frame_means(gaussians, torch.from_numpy(world_from_camera)), camera)
+            out = composite_cpu(screen, camera.width, camera.height, background)
+        ramp = torch.linspace(0.5, 1.5, camera.height * camera.width, dtype=dtype).reshape(camera.height, camera.width)
+        loss = (out.rgb * ramp[..., None]).sum() + 0.7 * (out.depth_m * ramp.T.reshape(ramp.shape)).sum() - 1.3 * out.silhouette.sum()
+        results.append((out, torch.autograd.grad(loss, [getattr(gaussians, name) for name in FIELDS])))
+    (fast, fast_grads), (twin, twin_grads) = results
+    eps = torch.finfo(dtype).eps
+    for name in ("rgb", "depth_m", "silhouette"):
+        torch.testing.assert_close(getattr(fast, name), getattr(twin, name), atol=8 * eps, rtol=8 * eps)
+    for name, actual, expected in zip(FIELDS, fast_grads, twin_grads):
+        scale = expected.abs().max()
+        assert scale > 0 and (actual != 0).any(), name
+        assert (actual - expected).abs().max() <= 64 * eps * scale, name
 
 
 def test_single_gaussian_known_answer():

@@ -158,6 +158,15 @@ def _project(means_m, log_radii_m, opacity_logits, rgb, camera_from_world, scala
             packed[i, RED + channel] = rgb[i, channel]
 
 
+def project_scalars(camera: Camera, dtype) -> np.ndarray:
+    """The camera's numbers that :func:`_project` and :func:`_project_backward` read, as torch casts Python
+    scalars: fx, fy, cx, cy, 1, the EWA Jacobian limits, the conic scales and the bound's scale."""
+    return np.array([
+        camera.fx, camera.fy, camera.cx, camera.cy, 1.0, *jacobian_limits(camera), *conic_scales(camera),
+        SIGMA_CUTOFF * max(camera.fx, camera.fy),
+    ], dtype)  # fmt: skip
+
+
 def project(
     means_m: np.ndarray,
     log_radii_m: np.ndarray,
@@ -177,14 +186,78 @@ def project(
     and opacity go through libm's exp and sqrt instead of torch's and may differ in the last bits.
     """
     dtype = means_m.dtype
-    # Python scalars as torch casts them
-    scalars = np.array([
-        camera.fx, camera.fy, camera.cx, camera.cy, 1.0, *jacobian_limits(camera), *conic_scales(camera),
-        SIGMA_CUTOFF * max(camera.fx, camera.fy),
-    ], dtype)  # fmt: skip
     packed = np.empty((means_m.shape[0], PACKED_COLUMNS), dtype)
-    _project(means_m, log_radii_m, opacity_logits, rgb, camera_from_world.astype(dtype), scalars, packed)
+    _project(means_m, log_radii_m, opacity_logits, rgb, camera_from_world.astype(dtype), project_scalars(camera, dtype),
+             packed)
     return packed
+
+
+def project_backward(
+    means_m: np.ndarray,
+    log_radii_m: np.ndarray,
+    opacity_logits: np.ndarray,
+    camera_from_world: np.ndarray,
+    camera: Camera,
+    grad_packed: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gradients of a loss w.r.t. ``means_m`` (N, 3), ``log_radii_m`` (N,) and ``opacity_logits`` (N,) given its
+    gradients ``grad_packed`` (N, PACKED_COLUMNS) w.r.t. :func:`project`'s rows (the bound's and the colours' are
+    not used: the bound is not differentiated, the colours pass through). The chain rule of
+    :func:`tambridge.gaussians.model.project_to_screen` after ``camera_frame_means``, whose autograd is the slow
+    twin: a clamped normalised coordinate passes no gradient, nor does the stand-in depth of a Gaussian behind the
+    near plane. Inputs as :func:`project`'s; arithmetic in float64, results in the dtype of the means."""
+    dtype = means_m.dtype
+    count = means_m.shape[0]
+    grad_means = np.empty((count, 3), dtype)
+    grad_log_radii = np.empty(count, dtype)
+    grad_opacity_logits = np.empty(count, dtype)
+    _project_backward(means_m, log_radii_m, opacity_logits, np.asarray(camera_from_world, np.float64),
+                      project_scalars(camera, np.float64), grad_packed, grad_means, grad_log_radii, grad_opacity_logits)
+    return grad_means, grad_log_radii, grad_opacity_logits
+
+
+@numba.njit(parallel=True, cache=True)
+def _project_backward(means_m, log_radii_m, opacity_logits, camera_from_world, scalars, grad_packed, grad_means,
+                      grad_log_radii, grad_opacity_logits):
+    fx, fy = scalars[0], scalars[1]
+    x_lo, x_hi, y_lo, y_hi = scalars[5], scalars[6], scalars[7], scalars[8]
+    scale_a, scale_b, scale_c = scalars[9], scalars[10], scalars[11]
+    m = camera_from_world
+    for i in numba.prange(means_m.shape[0]):
+        x, y, z = np.float64(means_m[i, 0]), np.float64(means_m[i, 1]), np.float64(means_m[i, 2])
+        camera_x = ((x * m[0, 0] + y * m[0, 1]) + z * m[0, 2]) + m[0, 3]
+        camera_y = ((x * m[1, 0] + y * m[1, 1]) + z * m[1, 2]) + m[1, 3]
+        depth = ((x * m[2, 0] + y * m[2, 1]) + z * m[2, 2]) + m[2, 3]
+        in_front = depth > NEAR_PLANE_M
+        inverse_depth = 1.0 / depth if in_front else 1.0
+        x_ratio, y_ratio = camera_x * inverse_depth, camera_y * inverse_depth
+        xn, yn = min(max(x_ratio, x_lo), x_hi), min(max(y_ratio, y_lo), y_hi)
+        radius_over_depth = math.exp(np.float64(log_radii_m[i])) * inverse_depth
+        plus_yy, xy, plus_xx, spread = _ewa_terms(xn, yn, radius_over_depth)
+        row = grad_packed[i]
+        grad_a, grad_b, grad_c = np.float64(row[CONIC_A]), np.float64(row[CONIC_B]), np.float64(row[CONIC_C])
+        # conic = (plus_yy, xy, plus_xx) * scales / spread, spread = (r / z)^2 (1 + xn^2 + yn^2)
+        grad_spread = -(grad_a * plus_yy * scale_a + grad_b * xy * scale_b + grad_c * plus_xx * scale_c) / (spread * spread)
+        grad_plus_yy, grad_xy, grad_plus_xx = grad_a * scale_a / spread, grad_b * scale_b / spread, grad_c * scale_c / spread
+        squared = radius_over_depth * radius_over_depth
+        grad_radius_over_depth = grad_spread * 2.0 * radius_over_depth * (plus_xx + yn * yn)
+        grad_xn = 2.0 * xn * (grad_spread * squared + grad_plus_xx) + grad_xy * yn
+        grad_yn = 2.0 * yn * (grad_spread * squared + grad_plus_yy) + grad_xy * xn
+        # torch.clamp passes the gradient where the value lies within the limits, ends included
+        grad_x_ratio = grad_xn if x_lo <= x_ratio <= x_hi else 0.0
+        grad_y_ratio = grad_yn if y_lo <= y_ratio <= y_hi else 0.0
+        # u = fx x / z + cx, and x / z, y / z, r / z all divide by the (stand-in) depth
+        along_x = grad_x_ratio + np.float64(row[U]) * fx
+        along_y = grad_y_ratio + np.float64(row[V]) * fy
+        grad_camera_x, grad_camera_y = along_x * inverse_depth, along_y * inverse_depth
+        grad_depth = np.float64(row[DEPTH])
+        if in_front:
+            grad_depth -= (along_x * x_ratio + along_y * y_ratio + grad_radius_over_depth * radius_over_depth) * inverse_depth
+        for column in range(3):
+            grad_means[i, column] = m[0, column] * grad_camera_x + m[1, column] * grad_camera_y + m[2, column] * grad_depth
+        grad_log_radii[i] = grad_radius_over_depth * radius_over_depth
+        opacity = 1.0 / (1.0 + math.exp(-np.float64(opacity_logits[i])))
+        grad_opacity_logits[i] = np.float64(row[OPACITY]) * opacity * (1.0 - opacity)
 
 
 @numba.njit(parallel=True, cache=True)

@@ -4,7 +4,9 @@
 them in torch (so autograd carries the pose and projection chain), then composites with one of three backends:
 
 - ``"cpu"``: the numba tile kernels of :mod:`tambridge.gaussians.cpu_kernel` behind a ``torch.autograd.Function``
-  (the path that ships; exact forward and backward of the image model in :mod:`tambridge.gaussians.model`). When
+  (the path that ships; exact forward and backward of the image model in :mod:`tambridge.gaussians.model`). With
+  no ``pose_delta`` (the mapper's steps) the projection and its backward run in numba as well
+  (:class:`_CpuProject`; the torch projection is its twin, kept for renders whose pose is optimised). When
   autograd records nothing (``torch.no_grad()`` or no input requiring gradients: evaluation, viewer, meshing) the
   projection runs in numba too and nothing is kept for a backward pass (:func:`render_cpu_untracked`);
 - ``"gsplat"``: gsplat's CUDA rasteriser (:mod:`tambridge.gaussians.gsplat_backend`);
@@ -66,6 +68,11 @@ def render(
     if backend == "cpu" and not _tracks_gradients(gaussians, pose_delta):
         camera_from_world = camera_from_world_tensor(world_from_camera, pose_delta)
         return render_cpu_untracked(gaussians, camera, camera_from_world, background_rgb)
+    if backend == "cpu" and pose_delta is None:
+        packed = _CpuProject.apply(gaussians.means_m, gaussians.log_radii_m, gaussians.opacity_logits, gaussians.rgb,
+                                   camera_from_world_tensor(world_from_camera, None), camera)
+        return composite_packed(packed, camera.width, camera.height,
+                                torch.tensor(background_rgb, dtype=packed.dtype, device=device))
     means_cam_m = camera_frame_means(gaussians, world_from_camera.to(device), pose_delta)
     background = torch.tensor(background_rgb, dtype=means_cam_m.dtype, device=device)
     if backend == "gsplat":
@@ -106,11 +113,47 @@ def render_cpu_untracked(
 
 def composite_cpu(screen: ScreenGaussians, width: int, height: int, background_rgb: torch.Tensor) -> RenderOutput:
     """Composite screen-space Gaussians with the numba kernels; outputs on the inputs' device and dtype."""
-    rgb, depth, silhouette = _CpuComposite.apply(
-        screen.means_px, screen.conics_px, screen.bounds_px, screen.depths_m, screen.opacity, screen.rgb,
-        width, height, background_rgb,
-    )
+    # cpu_kernel's column order; autograd splits the packed rows' gradients back into the fields
+    packed = torch.cat([screen.means_px, screen.conics_px, screen.bounds_px.detach()[:, None], screen.depths_m[:, None],
+                        screen.opacity[:, None], screen.rgb], dim=1)
+    return composite_packed(packed, width, height, background_rgb)
+
+
+def composite_packed(packed: torch.Tensor, width: int, height: int, background_rgb: torch.Tensor) -> RenderOutput:
+    """Composite packed screen-space rows (N, cpu_kernel.PACKED_COLUMNS) with the numba kernels; outputs on the rows'
+    device and dtype, differentiable w.r.t. every column but the bound."""
+    rgb, depth, silhouette = _CpuComposite.apply(packed, width, height, background_rgb)
     return RenderOutput(rgb=rgb, depth_m=depth, silhouette=silhouette)
+
+
+class _CpuProject(torch.autograd.Function):
+    """Autograd wrapper of :func:`cpu_kernel.project` and :func:`cpu_kernel.project_backward`: Gaussians and a fixed
+    ``camera_from_world`` (4, 4) float64 in, packed screen-space rows out (the Gaussians' dtype and device). The
+    fast twin of ``camera_frame_means`` and ``project_to_screen`` under autograd, for renders whose pose is not
+    optimised."""
+
+    @staticmethod
+    def forward(ctx, means_m, log_radii_m, opacity_logits, rgb, camera_from_world, camera):
+        # float64 Gaussians are projected in float64, float32 (and others) in float32, as torch projects them.
+        storage = torch.float64 if means_m.dtype == torch.float64 else torch.float32
+        arrays = [field.detach().to("cpu", storage).contiguous().numpy() for field in (means_m, log_radii_m, opacity_logits, rgb)]
+        matrix = camera_from_world.detach().to("cpu", torch.float64).numpy()
+        packed = cpu_kernel.project(*arrays, matrix, camera)
+        ctx.kernel_inputs = (arrays[:3], matrix, camera)
+        ctx.storage, ctx.dtype, ctx.device = storage, means_m.dtype, means_m.device
+        return torch.from_numpy(packed).to(device=means_m.device, dtype=means_m.dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_packed):
+        (means_m, log_radii_m, opacity_logits), matrix, camera = ctx.kernel_inputs
+        # As it comes (column-major from composite_backward): a contiguous copy would cost more than the strided reads.
+        grads = cpu_kernel.project_backward(means_m, log_radii_m, opacity_logits, matrix, camera,
+                                            grad_packed.detach().to("cpu", ctx.storage).numpy())
+        grad_means, grad_log_radii, grad_opacity_logits = (
+            torch.from_numpy(grad).to(device=ctx.device, dtype=ctx.dtype) for grad in grads)
+        grad_rgb = grad_packed[:, cpu_kernel.RED : cpu_kernel.RED + 3]
+        return grad_means, grad_log_radii, grad_opacity_logits, grad_rgb, None, None
 
 
 def _kernel_array(tensor: torch.Tensor) -> np.ndarray:
@@ -120,25 +163,23 @@ def _kernel_array(tensor: torch.Tensor) -> np.ndarray:
 
 
 class _CpuComposite(torch.autograd.Function):
-    """Autograd wrapper of :mod:`cpu_kernel`: inputs are the ScreenGaussians fields, outputs the three maps."""
+    """Autograd wrapper of :mod:`cpu_kernel`'s compositing: packed rows in, the three maps out."""
 
     @staticmethod
-    def forward(ctx, means_px, conics_px, bounds_px, depths_m, opacity, rgb, width, height, background_rgb):
-        # cpu_kernel's column order
-        columns = [means_px, conics_px, bounds_px[:, None], depths_m[:, None], opacity[:, None], rgb]
-        # Stored in float32 unless a field is float64: exact either way (the kernels compute in float64), and
+    def forward(ctx, packed, width, height, background_rgb):
+        # Stored in float32 unless the rows are float64: exact either way (the kernels compute in float64), and
         # float32 rows halve the memory traffic of binning and compositing.
-        storage = torch.float64 if any(column.dtype == torch.float64 for column in columns) else torch.float32
-        packed = torch.cat([column.detach().to("cpu", storage) for column in columns], dim=1).numpy()
+        storage = torch.float64 if packed.dtype == torch.float64 else torch.float32
+        rows = packed.detach().to("cpu", storage).contiguous().numpy()
         background = background_rgb.detach().to("cpu", torch.float64).numpy()
         # Maps and gradients come out in the Gaussians' dtype straight from the kernels (float64 inside).
-        numpy_dtype = np.float64 if means_px.dtype == torch.float64 else np.float32
-        bins = cpu_kernel.bin_tiles(packed, width, height)
+        numpy_dtype = np.float64 if packed.dtype == torch.float64 else np.float32
+        bins = cpu_kernel.bin_tiles(rows, width, height)
         colour, depth, silhouette, state = cpu_kernel.composite_forward(bins, width, height, background, numpy_dtype)
         ctx.kernel_inputs = (bins, state, background, numpy_dtype)
-        ctx.dtype, ctx.device = means_px.dtype, means_px.device
+        ctx.dtype, ctx.device = packed.dtype, packed.device
         return tuple(
-            torch.from_numpy(image).to(device=means_px.device, dtype=means_px.dtype) for image in (colour, depth, silhouette)
+            torch.from_numpy(image).to(device=packed.device, dtype=packed.dtype) for image in (colour, depth, silhouette)
         )
 
     @staticmethod
@@ -147,9 +188,4 @@ class _CpuComposite(torch.autograd.Function):
         bins, state, background, numpy_dtype = ctx.kernel_inputs
         image_grads = [_kernel_array(grad) for grad in (grad_rgb, grad_depth, grad_silhouette)]
         grads = torch.from_numpy(cpu_kernel.composite_backward(bins, state, background, *image_grads, numpy_dtype))
-        grads = grads.to(device=ctx.device, dtype=ctx.dtype)
-        k = cpu_kernel
-        return (
-            grads[:, k.U : k.V + 1], grads[:, k.CONIC_A : k.CONIC_C + 1], None, grads[:, k.DEPTH], grads[:, k.OPACITY],
-            grads[:, k.RED : k.RED + 3], None, None, None,
-        )  # fmt: skip
+        return grads.to(device=ctx.device, dtype=ctx.dtype), None, None, None
