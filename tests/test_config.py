@@ -69,7 +69,7 @@ def test_the_presets_say_what_they_change():
     assert fast.mapper.resolution_scale == 0.125 < Config().mapper.resolution_scale == quality.mapper.resolution_scale
     assert Config().mapper.iterations < quality.mapper.iterations == 40
     assert quality.mesh.voxel_size_m == 0.01 < Config().mesh.voxel_size_m
-    assert Config().mapper.sharp_iterations_per_view == 1 < quality.mapper.sharp_iterations_per_view == 4
+    assert Config().mapper.sharp_iterations_per_view == 2 < quality.mapper.sharp_iterations_per_view == 4
 
 
 @pytest.mark.parametrize("camera_file", sorted((ROOT / "configs" / "cameras").glob("*.yaml")), ids=lambda path: path.name)

@@ -63,7 +63,7 @@ def test_sharpening_lowers_the_full_resolution_error_of_a_coarse_map(synthetic_s
     after = {}
     for densify_error in (0.0, 0.1):
         stage.load_state_dict(copy.deepcopy(state))
-        stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=6,
+        stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=6, sharp_resolution_scale=1.0,
                                                   sharp_densify_error=densify_error, sharp_densify_fraction=0.02)
         stage.sharpen()
         after[densify_error] = full_resolution_l1(stage), len(stage.map)
@@ -95,6 +95,23 @@ def test_sharpening_reads_frames_again_at_its_resolution_a_chunk_at_a_time(synth
     assert stage._cache.keys() == cache.keys()
     assert all(images.rgb.shape == (30, 40, 3) for images in stage._cache.values())
 
+
+
+def test_sharpening_never_runs_coarser_than_the_mapping(synthetic_sequence_dir, tmp_path, monkeypatch):
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
+    stage, _ = coarse_stage(sequence, tmp_path, resolution_scale=0.5, window_size=3, iterations=2)
+    stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=1, sharp_resolution_scale=0.25)
+    sizes = []
+    optimise = stage.map.optimise
+
+    def recording(camera, views, schedule, exposures=None):
+        sizes.append((camera.width, camera.height))
+        return optimise(camera, views, schedule, exposures)
+
+    monkeypatch.setattr(stage.map, "optimise", recording)
+    stage.sharpen()
+    # Mapped at half of 160x120: a pass asked for a quarter runs at the mapping's 80x60.
+    assert sizes and set(sizes) == {(80, 60)}
 
 
 def test_frames_between_are_fitted_at_their_own_resolution_in_chunks_of_their_own(synthetic_sequence_dir, tmp_path,

@@ -30,8 +30,8 @@ class MapperConfig:
     Each new mapping view gets ``iterations`` Adam steps, alternating the new view with earlier views of the
     window (the ``window_size - 1`` earlier views that overlap it most); after the frontend finishes, every
     mapping view gets ``final_iterations_per_view`` more at the final poses. Mapping runs on frames resized by
-    ``resolution_scale``; a last sharpening pass (``sharp_*``) runs at ``sharp_resolution_scale``, where a user views
-    the map, over the views and ``sharp_frames_between`` tracked frames between each view and the next (at
+    ``resolution_scale``; a last sharpening pass (``sharp_*``) runs at ``sharp_resolution_scale``, closer to where a
+    user views the map (never coarser than the mapping), over the views and ``sharp_frames_between`` tracked frames between each view and the next (at
     ``sharp_between_resolution_scale``; never a frame the evaluation scores). Learning rates are 4-10x SplaTAM's:
     with a few dozen steps per view rather than SplaTAM's hundreds they reach a sharper map (docs/benchmarks.md).
     """
@@ -50,11 +50,14 @@ class MapperConfig:
                                at_least(1))
     final_iterations_per_view: int = setting(2, "Adam steps per mapping view at the final poses after tracking",
                                              NON_NEGATIVE)
-    # The map is viewed at the camera's resolution, not the mapping one: a last pass there builds the detail
-    # (edges, texture) that the coarse online mapping cannot see. Frames are read again, a window at a time.
-    sharp_resolution_scale: float = setting(1.0, "the sharpening pass after the final one runs on frames resized by "
-                                                 "this (1: the camera's resolution)", Range(0, 2, low_open=True))
-    sharp_iterations_per_view: int = setting(1, "Adam steps per mapping view in the sharpening pass (0: off), one "
+    # The map is viewed at the camera's resolution, not the mapping one: a last pass at a finer one builds the
+    # detail (edges, texture) that the coarse online mapping cannot see. Frames are read again, a window at a time.
+    # Half the camera's resolution scores as the full one does (Gaussians sized at the mapping resolution hold no
+    # finer detail) at two thirds of the cost, which pays for a second round (docs/benchmarks.md, "Half resolution").
+    sharp_resolution_scale: float = setting(0.5, "the sharpening pass after the final one runs on frames resized by "
+                                                 "this (1: the camera's resolution; never under resolution_scale)",
+                                            Range(0, 2, low_open=True))
+    sharp_iterations_per_view: int = setting(2, "Adam steps per mapping view in the sharpening pass (0: off), one "
                                                 "round over the views each", NON_NEGATIVE)
     # The views alone are sparse samples of the path: a map fitted to them generalises poorly to the frames between
     # them, which a viewer shows. The evaluation's novel views are never among these frames.
@@ -64,7 +67,8 @@ class MapperConfig:
                                            "evaluation frame)", NON_NEGATIVE)
     # Half resolution scores as well as full at less cost (docs/benchmarks.md, "Frames between the views").
     sharp_between_resolution_scale: float = setting(0.5, "... fitted on frames resized by this (1: the camera's "
-                                                         "resolution)", Range(0, 2, low_open=True))
+                                                         "resolution; never under resolution_scale)",
+                                                    Range(0, 2, low_open=True))
     # The views' exposures keep the online map in the median view's colours, which no recorded frame shows; fitted
     # to the frames as recorded, the map's colours become what the frames that see each surface show, which is what
     # a viewer of splats.ply shows: more PSNR as exported at the same cost (docs/benchmarks.md, "Sharp splats").

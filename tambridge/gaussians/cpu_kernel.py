@@ -1,5 +1,5 @@
-"""Numba kernels of the CPU rasteriser: tile binning, forward compositing and its exact backward pass, and (for
-renders that need no gradients) the projection to screen space.
+"""Numba kernels of the CPU rasteriser: tile binning, forward compositing and its exact backward pass, and the
+projection to screen space with its backward (for renders whose pose is not optimised).
 
 Layout. The image is cut into ``TILE_PX`` x ``TILE_PX`` tiles. Each visible Gaussian is listed in every tile its
 box overlaps (the square around the bounding circle of its 3-sigma ellipse), each tile's list in front-to-back
@@ -175,8 +175,8 @@ def project(
     camera_from_world: np.ndarray,
     camera: Camera,
 ) -> np.ndarray:
-    """Packed screen-space rows (N, PACKED_COLUMNS) of N Gaussians in one parallel pass, for renders that need
-    no gradients: the fast twin of :func:`tambridge.gaussians.model.camera_frame_means` and
+    """Packed screen-space rows (N, PACKED_COLUMNS) of N Gaussians in one parallel pass (its backward:
+    :func:`project_backward`): the fast twin of :func:`tambridge.gaussians.model.camera_frame_means` and
     :func:`~tambridge.gaussians.model.project_to_screen`.
 
     means_m (N, 3) world frame, log_radii_m (N,), opacity_logits (N,), rgb (N, 3): all float32 or all float64,

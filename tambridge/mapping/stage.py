@@ -476,14 +476,16 @@ class MappingStage:
         return frames
 
     def sharpen(self, frames_between: list[FrameBetween] = ()) -> None:
-        """The sharpening pass: every view's frame read again at ``mapper.sharp_resolution_scale`` (the resolution a
-        user views the map at) and every one of ``frames_between`` at ``mapper.sharp_between_resolution_scale``,
+        """The sharpening pass: every view's frame read again at ``mapper.sharp_resolution_scale`` and every one of
+        ``frames_between`` at ``mapper.sharp_between_resolution_scale`` (each at least ``mapper.resolution_scale``),
         Gaussians added where a view's colour error is worst (``sharp_densify_*``, first round), then
         ``sharp_iterations_per_view`` rounds of one Adam step on each view and frame, a chunk of views or of frames
         at a time so that only a window's frames are held, in a new order each round; through the views' exposures
         (a frame between: its anchor view's), or against the frames as recorded (``sharp_through_exposures``)."""
         config = self.mapper_config
-        scales = {MappingView: config.sharp_resolution_scale, FrameBetween: config.sharp_between_resolution_scale}
+        # Never coarser than the online mapping: a map fitted at a finer resolution would only be blurred.
+        scales = {MappingView: max(config.sharp_resolution_scale, config.resolution_scale),
+                  FrameBetween: max(config.sharp_between_resolution_scale, config.resolution_scale)}
         cameras = {kind: self.sequence.camera.scaled(scale) for kind, scale in scales.items()}
         added = 0
         for round_index in range(config.sharp_iterations_per_view):
