@@ -39,8 +39,12 @@ def requiring_grad(gaussians: GaussianTensors) -> GaussianTensors:
 
 
 def scalar_loss(gaussians, camera, world_from_camera, pose_delta, backend) -> torch.Tensor:
-    """A loss that weighs every output pixel and channel differently (so no gradient cancels by symmetry)."""
-    out = render(gaussians, camera, world_from_camera, pose_delta, BACKGROUND, backend=backend)
+    return weighted_sum(render(gaussians, camera, world_from_camera, pose_delta, BACKGROUND, backend=backend))
+
+
+def weighted_sum(out) -> torch.Tensor:
+    """A loss of a render that weighs every output pixel and channel differently (so no gradient cancels by
+    symmetry)."""
     height, width = out.depth_m.shape
     dtype = out.depth_m.dtype
     ramp = torch.linspace(0.5, 1.5, height * width, dtype=dtype).reshape(height, width)
@@ -173,9 +177,7 @@ def test_numba_projection_gradients_match_torch_projection(dtype):
         else:
             screen = project_to_screen(gaussians, camera_frame_means(gaussians, torch.from_numpy(world_from_camera)), camera)
             out = composite_cpu(screen, camera.width, camera.height, background)
-        ramp = torch.linspace(0.5, 1.5, camera.height * camera.width, dtype=dtype).reshape(camera.height, camera.width)
-        loss = (out.rgb * ramp[..., None]).sum() + 0.7 * (out.depth_m * ramp.T.reshape(ramp.shape)).sum() - 1.3 * out.silhouette.sum()
-        results.append((out, torch.autograd.grad(loss, [getattr(gaussians, name) for name in FIELDS])))
+        results.append((out, torch.autograd.grad(weighted_sum(out), [getattr(gaussians, name) for name in FIELDS])))
     (fast, fast_grads), (twin, twin_grads) = results
     eps = torch.finfo(dtype).eps
     for name in ("rgb", "depth_m", "silhouette"):

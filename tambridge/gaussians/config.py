@@ -31,8 +31,8 @@ class MapperConfig:
     window (the ``window_size - 1`` earlier views that overlap it most); after the frontend finishes, every
     mapping view gets ``final_iterations_per_view`` more at the final poses. Mapping runs on frames resized by
     ``resolution_scale``; a last sharpening pass (``sharp_*``) runs at ``sharp_resolution_scale``, closer to where a
-    user views the map (never coarser than the mapping), over the views and ``sharp_frames_between`` tracked frames between each view and the next (at
-    ``sharp_between_resolution_scale``; never a frame the evaluation scores). Learning rates are 4-10x SplaTAM's:
+    user views the map (never coarser than the mapping), over the views and ``sharp_frames_between`` tracked frames
+    between each view and the next (at ``sharp_between_resolution_scale``; never a frame the evaluation scores). Learning rates are 4-10x SplaTAM's:
     with a few dozen steps per view rather than SplaTAM's hundreds they reach a sharper map (docs/benchmarks.md).
     """
 

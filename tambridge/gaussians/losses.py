@@ -7,6 +7,8 @@ rather than a NaN.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 from pytorch_msssim import ssim as _ssim
@@ -58,11 +60,15 @@ def ssim_window_size(height: int, width: int) -> int:
     return window - (1 - window % 2)
 
 
+@functools.lru_cache(maxsize=None)
 def ssim_window(taps: int) -> np.ndarray:
-    """The 1-D Gaussian window (taps,) float64, normalised, computed in float32 as pytorch-msssim computes it."""
+    """The 1-D Gaussian window (taps,) float64, normalised, computed in float32 as pytorch-msssim computes it.
+    Made once per size (every mapping step asks for it) and read-only, since callers share it."""
     coords = torch.arange(taps, dtype=torch.float32) - taps // 2
     weights = torch.exp(-(coords ** 2) / (2 * SSIM_SIGMA_PX ** 2))
-    return (weights / weights.sum()).to(torch.float64).numpy()
+    window = (weights / weights.sum()).to(torch.float64).numpy()
+    window.flags.writeable = False
+    return window
 
 
 class _CpuSsim(torch.autograd.Function):

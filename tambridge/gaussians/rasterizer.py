@@ -99,16 +99,21 @@ def render_cpu_untracked(
     camera_from_world: (4, 4) float64. Outputs in the Gaussians' dtype and device, not differentiable.
     """
     dtype = gaussians.means_m.dtype
-    # float64 Gaussians are projected in float64, float32 (and others) in float32, as torch projects them.
-    storage = torch.float64 if dtype == torch.float64 else torch.float32
-    fields = (gaussians.means_m, gaussians.log_radii_m, gaussians.opacity_logits, gaussians.rgb)
-    arrays = [field.detach().to("cpu", storage).contiguous().numpy() for field in fields]
+    _, arrays = _projection_arrays(gaussians.means_m, gaussians.log_radii_m, gaussians.opacity_logits, gaussians.rgb)
     packed = cpu_kernel.project(*arrays, camera_from_world.detach().cpu().numpy(), camera)
     bins = cpu_kernel.bin_tiles(packed, camera.width, camera.height, with_slots=False)
     background = np.asarray(background_rgb, np.float64)
     maps = cpu_kernel.composite_forward(bins, camera.width, camera.height, background, packed.dtype)[:3]
     device = gaussians.means_m.device
     return RenderOutput(*(torch.from_numpy(image).to(device=device, dtype=dtype) for image in maps))
+
+
+def _projection_arrays(means_m, log_radii_m, opacity_logits, rgb) -> tuple[torch.dtype, list[np.ndarray]]:
+    """The fields :func:`cpu_kernel.project` reads, as contiguous CPU arrays, and the dtype they are in: float64
+    Gaussians are projected in float64, float32 (and others) in float32, as torch projects them."""
+    storage = torch.float64 if means_m.dtype == torch.float64 else torch.float32
+    return storage, [field.detach().to("cpu", storage).contiguous().numpy()
+                     for field in (means_m, log_radii_m, opacity_logits, rgb)]
 
 
 def composite_cpu(screen: ScreenGaussians, width: int, height: int, background_rgb: torch.Tensor) -> RenderOutput:
@@ -134,9 +139,7 @@ class _CpuProject(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means_m, log_radii_m, opacity_logits, rgb, camera_from_world, camera):
-        # float64 Gaussians are projected in float64, float32 (and others) in float32, as torch projects them.
-        storage = torch.float64 if means_m.dtype == torch.float64 else torch.float32
-        arrays = [field.detach().to("cpu", storage).contiguous().numpy() for field in (means_m, log_radii_m, opacity_logits, rgb)]
+        storage, arrays = _projection_arrays(means_m, log_radii_m, opacity_logits, rgb)
         matrix = camera_from_world.detach().to("cpu", torch.float64).numpy()
         packed = cpu_kernel.project(*arrays, matrix, camera)
         ctx.kernel_inputs = (arrays[:3], matrix, camera)
