@@ -11,7 +11,8 @@ views (every 5th frame that is not a mapping view). "off" seconds are the run's 
 its ``sharpening`` stage, its frames/s the frames over those.
 
 Scores, all renders at the camera's full resolution from the run's rendering poses:
-- ``psnr``/``ssim``: the run's own (metrics.json: through each view's exposure, inside the valid region);
+- ``psnr``/``ssim``: the run's own (metrics.json: through each view's exposure, inside the valid region; "on":
+  the exposures refitted to the final map, "off": as they were before the pass);
 - ``psnr_exp``/``ssim_exp``: as exported: the map's own colours with no per-view exposure (what a viewer of
   splats.ply shows at those poses), inside the valid region;
 - ``ssim_low``: the run's SSIM of the same renders and frames area-resized to the mapping resolution (what the map

@@ -166,7 +166,6 @@ def reconstruct(
                 # The frames the evaluation scores as novel views stay out of the map.
                 mapping.finish(tracking.keyframe_poses, tracking,
                                held_out=evaluation_frames(len(sequence), config.evaluation.novel_view_every, set()))
-                mapping.anchor_exposures()  # the colours splats.ply holds are the median view's
                 gaussians = mapping.map.world_gaussians()
             if config.mesh.enabled:
                 with run_log.stage("mesh"):

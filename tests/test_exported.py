@@ -27,7 +27,7 @@ from tambridge.evaluation.rendering import psnr_db, ssim_value
 from tambridge.export.splats import save_ply
 from tambridge.frontend.contract import KeyframeEvent
 from tambridge.gaussians.config import ExposureAnchor, MapperConfig
-from tambridge.gaussians.mapper import ViewExposure, backproject
+from tambridge.gaussians.mapper import MIN_EXPOSURE_FIT_PIXELS, ViewExposure, backproject, fit_exposure
 from tambridge.gaussians.model import GaussianTensors
 from tambridge.gaussians.rasterizer import render
 from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
@@ -146,6 +146,40 @@ def test_rebased_exposures_give_the_same_colours_of_the_recoloured_map():
     torch.testing.assert_close(exposure.apply(recoloured).detach(), before, atol=1e-6, rtol=0)
 
 
+def test_the_fitted_exposure_is_the_least_squares_line_of_each_channel():
+    """Against numpy's least squares on the masked pixels, channel by channel; an exact affine change of the colours
+    is recovered, and a fit without enough pixels or with a falling line gives none."""
+    generator = torch.Generator().manual_seed(0)
+    rendered = torch.rand((30, 40, 3), generator=generator)
+    gain, bias = torch.tensor([0.8, 1.1, 1.3]), torch.tensor([0.05, -0.02, 0.0])
+    observed = rendered * gain + bias + 0.05 * torch.randn((30, 40, 3), generator=generator)
+    mask = torch.rand((30, 40), generator=generator) > 0.3
+    fitted = fit_exposure(rendered, observed, mask)
+    for channel in range(3):
+        design = np.stack([rendered[..., channel][mask].numpy(), np.ones(int(mask.sum()))], axis=1).astype(np.float64)
+        (line_gain, line_bias), *_ = np.linalg.lstsq(design, observed[..., channel][mask].numpy().astype(np.float64), rcond=None)
+        np.testing.assert_allclose([np.exp(float(fitted[0, channel])), float(fitted[1, channel])], [line_gain, line_bias],
+                                   rtol=1e-5, atol=1e-6)
+    exact = fit_exposure(rendered, rendered * gain + bias, mask)
+    torch.testing.assert_close(ViewExposure(exact, frozen=True).apply(rendered), rendered * gain + bias, atol=1e-5, rtol=0)
+    few = torch.zeros((30, 40), dtype=torch.bool)
+    few.view(-1)[: MIN_EXPOSURE_FIT_PIXELS - 1] = True
+    assert fit_exposure(rendered, observed, few) is None
+    assert fit_exposure(rendered, 1.0 - rendered, mask) is None
+
+
+def test_reset_exposure_renders_the_new_parameters_and_steps_from_fresh_moments():
+    exposure = ViewExposure(learning_rate=0.1)
+    (-10.0 * exposure.apply(torch.ones((2, 2, 3))).sum()).backward()
+    exposure.step()
+    exposure.reset(torch.zeros((2, 3)))
+    torch.testing.assert_close(exposure.apply(torch.full((2, 2, 3), 0.5)).detach(), torch.full((2, 2, 3), 0.5))
+    exposure.apply(torch.ones((2, 2, 3))).sum().backward()
+    exposure.step()
+    # Adam's first step from fresh moments moves every parameter by the learning rate, against its gradient.
+    torch.testing.assert_close(exposure.parameters.detach(), torch.full((2, 3), -0.1))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("anchor", [ExposureAnchor.median, ExposureAnchor.first_view])
 def test_exposures_keep_the_map_in_true_colour_when_the_camera_exposure_changes(small_sequence_dir, tmp_path, anchor):
@@ -168,12 +202,14 @@ def test_exposures_keep_the_map_in_true_colour_when_the_camera_exposure_changes(
                                   np.zeros(0, np.int64), 0, 0)
             stage.on_keyframe(event, sequence[index], dict(keyframe_poses))
         stage.finish(keyframe_poses)
-        stage.anchor_exposures()
     finally:
         run_log.close()
     exported = ExportedMap(stage.map.world_gaussians(), poses)
     ratios = {index: np.mean(colour_ratio(exported, true_colour, index)) for index in (0, 8)}
     if anchor is ExposureAnchor.median:
+        # finish anchors after its last steps: the median view's exposure is the identity (to rounding).
+        median = torch.quantile(torch.stack([view.exposure.parameters.detach() for view in stage.views]), 0.5, dim=0)
+        torch.testing.assert_close(median, torch.zeros((2, 3)), atol=2e-4, rtol=0)
         # The bound leaves room for the prior's pull, which holds the views' exposures a little short of the frames'
         # gains (the map then takes the rest), and for the views' exposures being estimated, not known.
         assert abs(ratios[0] - 1.0) < 0.04 and abs(ratios[8] - 1.0) < 0.04, ratios

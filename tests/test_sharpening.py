@@ -18,6 +18,7 @@ from tambridge.io.tum import open_sequence
 from tambridge.mapping.stage import FrameBetween, MappingStage, frames_between_views, resize_frame
 from tambridge.runlog import RunLog
 from tambridge.threads import TORCH_THREADS, compute_threads
+from tests.test_exported import gained_sequence
 from tests.test_mapper import GroundTruthFrontend
 
 
@@ -187,6 +188,40 @@ def test_sharpening_against_the_frames_as_recorded_fits_what_a_viewer_shows(synt
         if not through_exposures:
             assert all(torch.equal(view.exposure.parameters.detach(), drifted) for view in stage.views)
     assert after[False] < 0.85 * before and after[False] < 0.85 * after[True], (before, after)
+
+
+@pytest.mark.slow
+def test_after_a_pass_as_recorded_the_views_exposures_follow_the_frames_gains(synthetic_sequence_dir, tmp_path):
+    """The frames' gains run 1.16 (frame 0) to 0.86 (frame 12) and back, and the views' exposures have drifted to
+    a 25 % gain. After the pass against the frames as recorded, ``finish`` refits each exposure to the map: every
+    view's gain relative to the others is its frame's (within 4 %), and the views render through their exposures
+    closer to their frames than through the stale ones; no exposure recolours the map."""
+    gains = np.exp(0.15 * np.cos(2 * np.pi * np.arange(24) / 24))
+    gained_sequence(synthetic_sequence_dir, tmp_path / "gained", gains)
+    sequence = open_sequence(tmp_path / "gained", max_frames=24)
+    stage, keyframe_poses = coarse_stage(sequence, tmp_path)
+    drifted = torch.tensor([[np.log(1.25)] * 3, [0.0] * 3], dtype=torch.float32)
+    for view in stage.views:
+        view.exposure = ViewExposure(drifted, learning_rate=1e-2)
+    stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=4)
+    stage.sharpen()
+    stale = full_resolution_l1(stage)
+    stage.mapper_config = dataclasses.replace(stage.mapper_config, final_iterations_per_view=0)
+    anchored = []
+    stage.anchor_exposures = lambda: anchored.append(True)
+    stage.finish(keyframe_poses)
+    # The map keeps the frames' own colours: no view's exposure recolours it.
+    assert not anchored
+    fitted = np.array([np.exp(view.exposure.parameters.detach().numpy()[0]).mean() for view in stage.views])
+    frames = [view.frame_index for view in stage.views]
+    np.testing.assert_allclose(fitted / fitted.mean(), gains[frames] / np.mean(gains[frames]), rtol=0.04)
+    assert full_resolution_l1(stage) < 0.8 * stale, (full_resolution_l1(stage), stale)
+    # A view whose render covers nothing (its keyframe turned away from the map) keeps the exposure it has.
+    last = stage.views[-1]
+    kept = last.exposure.parameters.detach().clone()
+    stage.keyframe_poses[last.keyframe_id] = stage.keyframe_poses[last.keyframe_id] @ np.diag([-1.0, 1.0, -1.0, 1.0])
+    assert stage.refit_exposures() == len(stage.views) - 1
+    assert torch.equal(last.exposure.parameters.detach(), kept)
 
 
 def test_densify_colour_error_adds_one_pixel_gaussians_at_the_worst_pixels_within_budget():

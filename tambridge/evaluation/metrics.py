@@ -86,10 +86,11 @@ class ExportedViewScores:
 @dataclasses.dataclass(kw_only=True)
 class RenderingMetrics:
     """The map rendered at full resolution, scored against ``scored_against``: at the novel (evaluation) views and
-    at the mapping views through each view's exposure (as the run optimised it), and at the novel views as exported
-    (no exposure). ``novel_views_sharper_half``: the novel views whose input frames are the sharper half (variance
-    of the Laplacian); ``novel_views_against_input``: with sharp ground truth only, the novel views scored against
-    the (blurred) input frames instead."""
+    at the mapping views through each view's exposure (as the run optimised it, or after a sharpening pass against
+    the frames as recorded refitted to the final map), and at the novel views as exported (no exposure).
+    ``novel_views_sharper_half``: the novel views whose input frames are the sharper half (variance of the
+    Laplacian); ``novel_views_against_input``: with sharp ground truth only, the novel views scored against the
+    (blurred) input frames instead."""
 
     novel_views: ViewScores
     mapping_views: ViewScores

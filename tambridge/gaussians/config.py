@@ -89,8 +89,9 @@ class MapperConfig:
     exposure_compensation: bool = setting(True, "a per-view affine colour (gain and bias per channel) between the map "
                                                 "and each view")
     lr_exposure: float = setting(1e-2, "Adam learning rate of the per-view exposure", POSITIVE)
-    exposure_anchor: ExposureAnchor = setting(ExposureAnchor.median, "the map's colours are those of: median (the "
-                                              "median view's exposure) or first_view (the first view's)")
+    exposure_anchor: ExposureAnchor = setting(ExposureAnchor.median, "while mapping, the map's colours are those of: "
+                                              "median (the median view's exposure) or first_view (the first view's); "
+                                              "a sharpening pass as recorded then fits the frames' own")
     exposure_prior: float = setting(0.0, "weight of the prior pulling each view's exposure to the identity (against "
                                          "the gain-colour ambiguity; 0: none)", NON_NEGATIVE)
     densify_silhouette: float = setting(0.99, "densify where the rendered silhouette is below this (the paper's gamma)",

@@ -36,6 +36,8 @@ SILHOUETTE_FLOOR = 1e-6
 FIELDS = ("means_anchor_m", "rgb", "log_radii_m", "opacity_logits")
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-15  # 3DGS's value: radii and opacities get tiny gradients that a larger eps would swamp
+MIN_EXPOSURE_FIT_PIXELS = 64
+"""Fewer covered pixels than this fix no exposure (:func:`fit_exposure`)."""
 
 
 @dataclasses.dataclass
@@ -155,6 +157,14 @@ class ViewExposure:
             self.parameters[1] -= torch.exp(log_gain) * reference[1]
             self.parameters[0] = log_gain
 
+    def reset(self, parameters: torch.Tensor) -> None:
+        """Set the log gains and biases to ``parameters`` (2, 3) and drop Adam's moments, which belong to the old
+        ones."""
+        with torch.no_grad():
+            self.parameters.copy_(parameters)
+        if self._optimiser is not None:
+            self._optimiser.state.clear()
+
     def step(self) -> None:
         """One Adam step on the gradient the last backward pass left (none when frozen), then clear it."""
         if self._optimiser is not None and self.parameters.grad is not None:
@@ -173,6 +183,25 @@ class ViewExposure:
         if exposure._optimiser is not None:
             exposure._optimiser.load_state_dict(state["adam"])  # the learning rate and prior too
         return exposure
+
+
+def fit_exposure(rendered_rgb: torch.Tensor, observed_rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor | None:
+    """The :class:`ViewExposure` parameters (2, 3), log gains and biases, whose per-channel affine map takes the
+    ``rendered_rgb`` (H, W, 3) map colours closest to the ``observed_rgb`` (H, W, 3) ones over the ``mask`` (H, W)
+    pixels, in least squares (closed form, float64); None where fewer than :data:`MIN_EXPOSURE_FIT_PIXELS` are
+    masked or a channel's best gain is not positive (no exposure explains it)."""
+    rendered, observed = rendered_rgb[mask].double(), observed_rgb[mask].double()
+    if len(rendered) < MIN_EXPOSURE_FIT_PIXELS:
+        return None
+    rendered_mean, observed_mean = rendered.mean(0), observed.mean(0)
+    variance = ((rendered - rendered_mean) ** 2).mean(0)
+    covariance = ((rendered - rendered_mean) * (observed - observed_mean)).mean(0)
+    if bool((variance <= 0).any()):
+        return None
+    gain = covariance / variance
+    if bool((gain <= 0).any()):
+        return None
+    return torch.stack([gain.log(), observed_mean - gain * rendered_mean]).to(rendered_rgb.dtype)
 
 
 class GaussianMap:

@@ -38,7 +38,7 @@ from tambridge.state import attribute_state, restore_attributes
 from tambridge.bridge.config import BridgeConfig
 from tambridge.frontend.contract import FrontendResult, KeyframeEvent, TrackResult
 from tambridge.gaussians.config import ExposureAnchor, MapperConfig
-from tambridge.gaussians.mapper import GaussianMap, ViewExposure, ViewImages, backproject
+from tambridge.gaussians.mapper import GaussianMap, ViewExposure, ViewImages, backproject, fit_exposure
 from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.geometry import inverse, transform_points
 from tambridge.io.tum import Frame, RgbdSequence
@@ -192,6 +192,33 @@ class MappingStage:
             self.map.recolour(ViewExposure(reference, frozen=True))
             for view in self.views:
                 view.exposure.rebase(reference)
+
+    @property
+    def fits_frames_as_recorded(self) -> bool:
+        """Whether :meth:`finish` runs a sharpening pass against the frames as recorded (no exposure)."""
+        return bool(self.mapper_config.sharp_iterations_per_view) and not self.mapper_config.sharp_through_exposures
+
+    def refit_exposures(self) -> int:
+        """Fit every view's exposure again to the map as it is now, in closed form (:func:`fit_exposure`): the
+        view's render at the mapping resolution against its frame, over the pixels the map covers (silhouette at
+        least ``mapper.densify_silhouette``) where the colour has data. After a pass against the frames as recorded
+        the map's colours are the frames' own, and exposures fitted before it to other colours would render every
+        view, and every frame anchored at it, through a stale transform. A view the fit cannot explain keeps its
+        exposure. Returns how many were refitted; nothing without exposures."""
+        if not self.views or self.views[0].exposure is None:
+            return 0
+        refitted = 0
+        for view in self.views:
+            images = self.images(view.frame_index)
+            rendered = self.map.render(self.camera, self.view_pose(view))
+            covered = rendered.silhouette >= self.mapper_config.densify_silhouette
+            if images.colour_valid is not None:
+                covered &= images.colour_valid
+            fitted = fit_exposure(rendered.rgb, images.rgb, covered)
+            if fitted is not None:
+                view.exposure.reset(fitted)
+                refitted += 1
+        return refitted
 
     @staticmethod
     def exposures(views: list[MappingView]) -> list[ViewExposure | None] | None:
@@ -426,7 +453,9 @@ class MappingStage:
         """Move every view to the final keyframe poses, run ``final_iterations_per_view`` more steps on each view
         (in random order; times :meth:`steps_factor`), then the sharpening pass (:meth:`sharpen`) over the views and
         the tracked frames between them that ``tracking`` (the frontend's final result; None: views only) gives,
-        never a frame of ``held_out`` (the evaluation's novel views), and prune."""
+        never a frame of ``held_out`` (the evaluation's novel views), and prune. The map's colours, those splats.ply
+        holds, are then the frames' own after a pass against the frames as recorded, every exposure refitted to them
+        (:meth:`refit_exposures`); else those :meth:`anchor_exposures` gives."""
         with self.run_log.stage("final_refinement"), self.threads():
             self.update_keyframe_poses(keyframe_poses)
             for chunk in self.view_chunks():
@@ -441,6 +470,12 @@ class MappingStage:
                 removed = self.final_prune()
             logger.info("final refinement: %d steps per view over %d views, %d Gaussians pruned -> %d",
                         self.mapper_config.final_iterations_per_view, len(self.views), removed, len(self.map))
+        if not self.fits_frames_as_recorded:
+            self.anchor_exposures()
+        elif self.views and self.views[0].exposure is not None:
+            with self.run_log.stage("sharpening"), self.threads():
+                refitted = self.refit_exposures()
+            logger.info("exposures refitted to the map as recorded: %d of %d views", refitted, len(self.views))
 
     def final_prune(self) -> int:
         """The prune that ends :meth:`finish`, seen from the last view; returns how many Gaussians it removed."""
