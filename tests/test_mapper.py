@@ -68,16 +68,18 @@ def test_a_map_and_camera_moved_together_render_the_same():
     torch.testing.assert_close(after.depth_m, before.depth_m, atol=1e-5, rtol=0)
 
 
-@pytest.mark.parametrize("with_gradient, colour_only", [(10, 0), (6, 2)])
-def test_adam_step_moves_the_gaussians_with_a_gradient_as_torch_adam_and_no_other(with_gradient, colour_only):
+@pytest.mark.parametrize("with_gradient, colour_only, scale", [(10, 0, 1.0), (6, 2, 1.0), (10, 0, 0.3)])
+def test_adam_step_moves_the_gaussians_with_a_gradient_as_torch_adam_and_no_other(with_gradient, colour_only, scale):
     """The first ``with_gradient`` of 10 Gaussians get gradients in every step (the last ``colour_only`` of them, after
     the first step, in the colour alone: their other fields' moments decay and still move them, as torch's do); the
-    others get none and keep their parameters, moments and step counts."""
+    others get none and keep their parameters, moments and step counts. At ``scale`` times the learning rates,
+    as torch's Adam at those rates."""
     gaussian_map = small_map([np.eye(4)], [10])
     params = {name: value.clone() for name, value in gaussian_map._params.items()}
     before = {name: value.clone() for name, value in params.items()}
     reference = {name: value[:with_gradient].clone().requires_grad_(True) for name, value in params.items()}
-    optimisers = [torch.optim.Adam([reference[name]], lr=gaussian_map._learning_rates[name], eps=ADAM_EPS) for name in reference]
+    optimisers = [torch.optim.Adam([reference[name]], lr=scale * gaussian_map._learning_rates[name], eps=ADAM_EPS)
+                  for name in reference]
     exp_avg = {name: torch.zeros_like(value) for name, value in params.items()}
     exp_avg_sq = {name: torch.zeros_like(value) for name, value in params.items()}
     steps = torch.zeros(10)
@@ -88,7 +90,7 @@ def test_adam_step_moves_the_gaussians_with_a_gradient_as_torch_adam_and_no_othe
             grads[name][with_gradient:] = 0.0
             if name != "rgb" and step > 0:
                 grads[name][with_gradient - colour_only : with_gradient] = 0.0
-        steps = gaussian_map._adam_step(params, grads, exp_avg, exp_avg_sq, steps)
+        steps = gaussian_map._adam_step(params, grads, exp_avg, exp_avg_sq, steps, scale)
         for name, optimiser in zip(reference, optimisers):
             reference[name].grad = grads[name][:with_gradient]
             optimiser.step()

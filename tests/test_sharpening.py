@@ -77,13 +77,15 @@ def test_sharpening_reads_frames_again_at_its_resolution_a_chunk_at_a_time(synth
     sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
     stage, _ = coarse_stage(sequence, tmp_path, window_size=3, iterations=2)
     cache = dict(stage._cache)
-    stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=2, sharp_resolution_scale=1.5)
-    calls = []
+    stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=2, sharp_resolution_scale=1.5,
+                                              sharp_lr_scale_start=2.0, sharp_lr_scale_end=0.4)
+    calls, scales = [], []
     optimise = stage.map.optimise
 
-    def recording(camera, views, schedule, exposures=None):
+    def recording(camera, views, schedule, exposures=None, learning_rate_scale=1.0):
         calls.append(((camera.width, camera.height), [tuple(images.rgb.shape) for _, images in views], list(schedule)))
-        return optimise(camera, views, schedule, exposures)
+        scales.append(learning_rate_scale)
+        return optimise(camera, views, schedule, exposures, learning_rate_scale)
 
     monkeypatch.setattr(stage.map, "optimise", recording)
     stage.sharpen()
@@ -95,6 +97,8 @@ def test_sharpening_reads_frames_again_at_its_resolution_a_chunk_at_a_time(synth
     assert [schedule for _, _, schedule in calls] == [[0, 1, 2], [0], [0, 1, 2], [0]]
     assert stage._cache.keys() == cache.keys()
     assert all(images.rgb.shape == (30, 40, 3) for images in stage._cache.values())
+    # The learning rates fall linearly over the pass's four chunks, from 2 towards 0.4 times the online ones.
+    np.testing.assert_allclose(scales, [2.0, 1.6, 1.2, 0.8])
 
 
 
@@ -105,9 +109,9 @@ def test_sharpening_never_runs_coarser_than_the_mapping(synthetic_sequence_dir, 
     sizes = []
     optimise = stage.map.optimise
 
-    def recording(camera, views, schedule, exposures=None):
+    def recording(camera, views, schedule, exposures=None, learning_rate_scale=1.0):
         sizes.append((camera.width, camera.height))
-        return optimise(camera, views, schedule, exposures)
+        return optimise(camera, views, schedule, exposures, learning_rate_scale)
 
     monkeypatch.setattr(stage.map, "optimise", recording)
     stage.sharpen()
@@ -127,9 +131,9 @@ def test_frames_between_are_fitted_at_their_own_resolution_in_chunks_of_their_ow
     calls = []
     optimise = stage.map.optimise
 
-    def recording(camera, views, schedule, exposures=None):
+    def recording(camera, views, schedule, exposures=None, learning_rate_scale=1.0):
         calls.append(((camera.width, camera.height), {tuple(images.rgb.shape) for _, images in views}, len(views)))
-        return optimise(camera, views, schedule, exposures)
+        return optimise(camera, views, schedule, exposures, learning_rate_scale)
 
     monkeypatch.setattr(stage.map, "optimise", recording)
     stage.sharpen(frames)

@@ -69,6 +69,12 @@ class MapperConfig:
     sharp_between_resolution_scale: float = setting(0.5, "... fitted on frames resized by this (1: the camera's "
                                                          "resolution; never under resolution_scale)",
                                                     Range(0, 2, low_open=True))
+    # Larger steps first, then annealed: at the online rates throughout, the map ends on whichever frames the pass
+    # fitted last (their exposure, their poses' errors); annealing alone leaves it under-fitted (docs/benchmarks.md,
+    # "Learning rates in the pass").
+    sharp_lr_scale_start: float = setting(2.0, "the sharpening pass's learning rates, as multiples of the online ones "
+                                               "(lr_*), fall linearly over the pass from this ...", POSITIVE)
+    sharp_lr_scale_end: float = setting(0.1, "... to this (equal: constant)", POSITIVE)
     # The views' exposures keep the online map in the median view's colours, which no recorded frame shows; fitted
     # to the frames as recorded, the map's colours become what the frames that see each surface show, which is what
     # a viewer of splats.ply shows: more PSNR as exported at the same cost (docs/benchmarks.md, "Sharp splats").

@@ -402,7 +402,7 @@ class GaussianMap:
     # ---- optimisation ---------------------------------------------------------------------------------------
 
     def optimise(self, camera: Camera, views: Sequence[tuple[np.ndarray, ViewImages]], schedule: Sequence[int],
-                 exposures: Sequence[ViewExposure | None] | None = None) -> list[float]:
+                 exposures: Sequence[ViewExposure | None] | None = None, learning_rate_scale: float = 1.0) -> list[float]:
         """Adam steps of the map loss with the poses fixed: step k renders ``views[schedule[k]]``; returns the losses.
 
         ``views`` are ``(world_from_camera, images)`` pairs at ``camera``'s resolution, the pose (4, 4) or a
@@ -411,7 +411,8 @@ class GaussianMap:
         state, stepped, and scattered back, so the cost follows the views, not the size of the map. A Gaussian
         that gets no gradient in a step (outside that step's view) does not move and its Adam state is unchanged.
         ``exposures`` (one per view, or None) maps the render to the view's exposure before the loss; those not
-        frozen are optimised along with the Gaussians.
+        frozen are optimised along with the Gaussians. The Gaussians' learning rates are ``learning_rate_scale``
+        times ``config.lr_*``.
         """
         if not schedule or len(self) == 0:
             return []
@@ -440,7 +441,8 @@ class GaussianMap:
                             self.config.zeta, self.config.w_depth, self.config.w_colour)
             loss.backward()
             params = {name: leaf.detach() for name, leaf in leaves.items()}
-            steps = self._adam_step(params, {name: leaf.grad for name, leaf in leaves.items()}, exp_avg, exp_avg_sq, steps)
+            steps = self._adam_step(params, {name: leaf.grad for name, leaf in leaves.items()}, exp_avg, exp_avg_sq, steps,
+                                    learning_rate_scale)
             if exposure is not None:
                 exposure.step()
             losses.append(float(loss.detach()))
@@ -451,8 +453,10 @@ class GaussianMap:
         self._steps[rows] = steps
         return losses
 
-    def _adam_step(self, params: dict, grads: dict, exp_avg: dict, exp_avg_sq: dict, steps: torch.Tensor) -> torch.Tensor:
-        """One Adam step (Kingma & Ba 2015), in place, on the Gaussians with a gradient; returns their step counts (M,).
+    def _adam_step(self, params: dict, grads: dict, exp_avg: dict, exp_avg_sq: dict, steps: torch.Tensor,
+                   learning_rate_scale: float = 1.0) -> torch.Tensor:
+        """One Adam step (Kingma & Ba 2015), in place, on the Gaussians with a gradient, at ``learning_rate_scale``
+        times the configured learning rates; returns their step counts (M,).
 
         A Gaussian without one has a zero gradient in every field: with its decay factors and step size set to 1, 1
         and 0 the same in-place expressions leave its moments and parameters as they were, so no masked copies are
@@ -473,7 +477,7 @@ class GaussianMap:
                 exp_avg[name].mul_(decay1.view(shape)).add_(grad, alpha=1.0 - beta1)
                 exp_avg_sq[name].mul_(decay2.view(shape)).addcmul_(grad, grad, value=1.0 - beta2)
                 denominator = exp_avg_sq[name].sqrt().mul_(root_correction.view(shape)).add_(ADAM_EPS)
-                scaled = exp_avg[name] * (self._learning_rates[name] * step_size).view(shape)
+                scaled = exp_avg[name] * (self._learning_rates[name] * learning_rate_scale * step_size).view(shape)
                 params[name].addcdiv_(scaled, denominator, value=-1.0)
             # Colours are optimised directly (as SplaTAM does) and kept in the displayable range.
             params["rgb"].clamp_(0.0, 1.0)

@@ -515,7 +515,8 @@ class MappingStage:
         ``frames_between`` at ``mapper.sharp_between_resolution_scale`` (each at least ``mapper.resolution_scale``),
         Gaussians added where a view's colour error is worst (``sharp_densify_*``, first round), then
         ``sharp_iterations_per_view`` rounds of one Adam step on each view and frame, a chunk of views or of frames
-        at a time so that only a window's frames are held, in a new order each round; through the views' exposures
+        at a time so that only a window's frames are held, in a new order each round, at learning rates falling
+        from ``sharp_lr_scale_start`` to ``sharp_lr_scale_end`` times the online ones; through the views' exposures
         (a frame between: its anchor view's), or against the frames as recorded (``sharp_through_exposures``)."""
         config = self.mapper_config
         # Never coarser than the online mapping: a map fitted at a finer resolution would only be blurred.
@@ -528,7 +529,11 @@ class MappingStage:
             if frames_between:
                 chunks += shuffled_chunks(list(frames_between), config.window_size, self._rng)
                 chunks = [chunks[index] for index in self._rng.permutation(len(chunks))]
-            for chunk in chunks:
+            for chunk_index, chunk in enumerate(chunks):
+                # Linear in the pass's progress, chunk by chunk, from sharp_lr_scale_start towards sharp_lr_scale_end.
+                progress = (round_index + chunk_index / len(chunks)) / config.sharp_iterations_per_view
+                start, end = config.sharp_lr_scale_start, config.sharp_lr_scale_end
+                learning_rate_scale = start + (end - start) * progress
                 kind = type(chunk[0])
                 camera = cameras[kind]
                 # Frames are read again each round: holding every view at this resolution would not be bounded.
@@ -548,7 +553,8 @@ class MappingStage:
                                 config.sharp_densify_error, config.sharp_densify_fraction, poses if poses.ndim == 3 else None)
                     posed.append((poses, images))
                 self.map.optimise(camera, posed, list(range(len(chunk))),
-                                  self.exposures(exposure_views) if config.sharp_through_exposures else None)
+                                  self.exposures(exposure_views) if config.sharp_through_exposures else None,
+                                  learning_rate_scale)
         logger.info("sharpening at %dx%d: %d steps per view over %d views and %d frames between them (at %dx%d), "
                     "+%d Gaussians -> %d", cameras[MappingView].width, cameras[MappingView].height,
                     config.sharp_iterations_per_view, len(self.views), len(frames_between), cameras[FrameBetween].width,
