@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -39,6 +40,7 @@ from tambridge.evaluation.exported import ExportedMap  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.evaluation.rendering import psnr_db, score_frames  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
+from tambridge.gaussians.mapper import affine_colour_fit  # noqa: E402
 from tambridge.io.tum import open_sequence  # noqa: E402
 from tambridge.threads import TORCH_THREADS, compute_threads  # noqa: E402
 from tambridge.trajectory import read_tum_trajectory  # noqa: E402
@@ -102,12 +104,9 @@ def colour_bounds(run_dir: Path, sequence_dir: Path, camera: Path | None, max_fr
 
 
 def _affine_fit(rendered: np.ndarray, observed: np.ndarray) -> np.ndarray:
-    """(2, 3): per channel, the gain and bias that map ``rendered`` (M, 3) closest to ``observed`` (least squares)."""
-    fit = np.empty((2, 3))
-    for channel in range(3):
-        design = np.stack([rendered[:, channel], np.ones(len(rendered))], axis=1).astype(np.float64)
-        fit[:, channel] = np.linalg.lstsq(design, observed[:, channel].astype(np.float64), rcond=None)[0]
-    return fit
+    """(2, 3): per channel, the gain and bias that map ``rendered`` (M, 3) closest to ``observed`` (M, 3) (least
+    squares, :func:`tambridge.gaussians.mapper.affine_colour_fit`)."""
+    return torch.stack(affine_colour_fit(torch.from_numpy(rendered), torch.from_numpy(observed))).numpy()
 
 
 def _mean(ratio: list[float] | None) -> float | None:

@@ -110,6 +110,7 @@ def limit_scores(mapping, poses: np.ndarray, frames: list[int], pose_iterations:
 
     from tambridge.bridge.refinement import refine_render_pose
     from tambridge.evaluation.rendering import psnr_db
+    from tambridge.gaussians.mapper import affine_colour_fit
     from tambridge.mapping.stage import resize_frame
 
     camera = mapping.sequence.camera
@@ -130,11 +131,8 @@ def limit_scores(mapping, poses: np.ndarray, frames: list[int], pose_iterations:
             observed = frame.rgb[top:bottom, left:right].astype(np.float32) / 255.0
             rendered = cropped_render(poses[index])
             plain.append(psnr_db(rendered, observed))
-            design = np.stack([rendered.reshape(-1, 3), np.ones_like(rendered.reshape(-1, 3))], axis=2)
-            fitted = np.empty_like(rendered)
-            for channel in range(3):
-                (gain, bias), *_ = np.linalg.lstsq(design[:, channel], observed[..., channel].ravel(), rcond=None)
-                fitted[..., channel] = np.clip(gain * rendered[..., channel] + bias, 0.0, 1.0)
+            gain, bias = affine_colour_fit(torch.from_numpy(rendered.reshape(-1, 3)), torch.from_numpy(observed.reshape(-1, 3)))
+            fitted = np.clip(rendered * gain.numpy() + bias.numpy(), 0.0, 1.0).astype(rendered.dtype)
             affine.append(psnr_db(fitted, observed))
             low = resize_frame(frame, mapping.mapper_config.resolution_scale, mapping.device)
             refinement = refine_render_pose(gaussians, mapping.camera, poses[index], low.rgb, low.depth_m,

@@ -32,8 +32,9 @@ class MapperConfig:
     mapping view gets ``final_iterations_per_view`` more at the final poses. Mapping runs on frames resized by
     ``resolution_scale``; a last sharpening pass (``sharp_*``) runs at ``sharp_resolution_scale``, closer to where a
     user views the map (never coarser than the mapping), over the views and ``sharp_frames_between`` tracked frames
-    between each view and the next (at ``sharp_between_resolution_scale``; never a frame the evaluation scores). Learning rates are 4-10x SplaTAM's:
-    with a few dozen steps per view rather than SplaTAM's hundreds they reach a sharper map (docs/benchmarks.md).
+    between each view and the next (at ``sharp_between_resolution_scale``; never a frame the evaluation scores).
+    Learning rates are 4-10x SplaTAM's: with a few dozen steps per view rather than SplaTAM's hundreds they reach a
+    sharper map (docs/benchmarks.md).
     """
 
     enabled: bool = setting(True, "build the Gaussian map (false: tracking, trajectory and sensor-depth mesh only)")

@@ -185,23 +185,29 @@ class ViewExposure:
         return exposure
 
 
-def fit_exposure(rendered_rgb: torch.Tensor, observed_rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor | None:
-    """The :class:`ViewExposure` parameters (2, 3), log gains and biases, whose per-channel affine map takes the
-    ``rendered_rgb`` (H, W, 3) map colours closest to the ``observed_rgb`` (H, W, 3) ones over the ``mask`` (H, W)
-    pixels, in least squares (closed form, float64); None where fewer than :data:`MIN_EXPOSURE_FIT_PIXELS` are
-    masked or a channel's best gain is not positive (no exposure explains it)."""
-    rendered, observed = rendered_rgb[mask].double(), observed_rgb[mask].double()
-    if len(rendered) < MIN_EXPOSURE_FIT_PIXELS:
-        return None
+def affine_colour_fit(rendered_rgb: torch.Tensor, observed_rgb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per channel, the gain and bias (3,) each, float64, of the affine map that takes the ``rendered_rgb`` (M, 3)
+    colours closest to the ``observed_rgb`` (M, 3) ones in least squares (closed form; a channel without spread in
+    ``rendered_rgb`` gets a gain of NaN)."""
+    rendered, observed = rendered_rgb.double(), observed_rgb.double()
     rendered_mean, observed_mean = rendered.mean(0), observed.mean(0)
     variance = ((rendered - rendered_mean) ** 2).mean(0)
     covariance = ((rendered - rendered_mean) * (observed - observed_mean)).mean(0)
-    if bool((variance <= 0).any()):
-        return None
     gain = covariance / variance
-    if bool((gain <= 0).any()):
+    return gain, observed_mean - gain * rendered_mean
+
+
+def fit_exposure(rendered_rgb: torch.Tensor, observed_rgb: torch.Tensor, mask: torch.Tensor) -> torch.Tensor | None:
+    """The :class:`ViewExposure` parameters (2, 3), log gains and biases, whose per-channel affine map takes the
+    ``rendered_rgb`` (H, W, 3) map colours closest to the ``observed_rgb`` (H, W, 3) ones over the ``mask`` (H, W)
+    pixels (:func:`affine_colour_fit`); None where fewer than :data:`MIN_EXPOSURE_FIT_PIXELS` are masked or a
+    channel's best gain is not a positive number (no exposure explains it)."""
+    if int(mask.sum()) < MIN_EXPOSURE_FIT_PIXELS:
         return None
-    return torch.stack([gain.log(), observed_mean - gain * rendered_mean]).to(rendered_rgb.dtype)
+    gain, bias = affine_colour_fit(rendered_rgb[mask], observed_rgb[mask])
+    if not bool((torch.isfinite(gain) & (gain > 0)).all()):
+        return None
+    return torch.stack([gain.log(), bias]).to(rendered_rgb.dtype)
 
 
 class GaussianMap:

@@ -524,6 +524,7 @@ class MappingStage:
                   FrameBetween: max(config.sharp_between_resolution_scale, config.resolution_scale)}
         cameras = {kind: self.sequence.camera.scaled(scale) for kind, scale in scales.items()}
         added = 0
+        start, end = config.sharp_lr_scale_start, config.sharp_lr_scale_end
         for round_index in range(config.sharp_iterations_per_view):
             chunks = self.view_chunks()
             if frames_between:
@@ -532,7 +533,6 @@ class MappingStage:
             for chunk_index, chunk in enumerate(chunks):
                 # Linear in the pass's progress, chunk by chunk, from sharp_lr_scale_start towards sharp_lr_scale_end.
                 progress = (round_index + chunk_index / len(chunks)) / config.sharp_iterations_per_view
-                start, end = config.sharp_lr_scale_start, config.sharp_lr_scale_end
                 learning_rate_scale = start + (end - start) * progress
                 kind = type(chunk[0])
                 camera = cameras[kind]
