@@ -74,30 +74,48 @@ RESULTS = ROOT / "benchmarks" / "results"
 
 def as_exported_scores(mapping, poses: np.ndarray, frames: list[int]) -> dict:
     """PSNR/SSIM of the map rendered with no exposure at full resolution, and the run's SSIM at the mapping
-    resolution (renders through the exposures, area-resized as the mapper resizes frames); inside the valid region."""
+    resolution (renders through the exposures, area-resized as the mapper resizes frames); inside the valid region.
+    ``error_shares``: where the squared error as exported lies, summed over the frames, by the map's silhouette
+    (``covered`` at least 0.95, ``uncovered`` at most 0.05, ``partial`` between) and by the frame's depth
+    (``unmeasured``: pixels without); ``pixel_shares`` the same classes' share of the pixels."""
     import cv2
     import torch
 
+    from tambridge.evaluation.exported import COVERED_SILHOUETTE
     from tambridge.evaluation.rendering import psnr_db, ssim_value
 
     camera = mapping.sequence.camera
     top, bottom, left, right = mapping.sequence.valid_region
     size = (mapping.camera.width, mapping.camera.height)
     psnr, ssim, ssim_low = [], [], []
+    errors = {"covered": 0.0, "partial": 0.0, "uncovered": 0.0, "unmeasured": 0.0, "all": 0.0}
+    pixels = dict.fromkeys(errors, 0)
     with mapping.threads():
         for index in frames:
-            rendered = mapping.map.render(camera, poses[index]).rgb
-            observed = mapping.sequence[index].rgb[top:bottom, left:right].astype(np.float32) / 255.0
+            output = mapping.map.render(camera, poses[index])
+            rendered = output.rgb
+            frame = mapping.sequence[index]
+            observed = frame.rgb[top:bottom, left:right].astype(np.float32) / 255.0
             own = rendered.clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
             psnr.append(psnr_db(own, observed))
             ssim.append(ssim_value(own, observed))
+            squared_error = ((own.astype(np.float64) - observed) ** 2).mean(axis=2)
+            silhouette = output.silhouette.cpu().numpy()[top:bottom, left:right]
+            classes = {"covered": silhouette >= COVERED_SILHOUETTE, "uncovered": silhouette <= 1 - COVERED_SILHOUETTE,
+                       "unmeasured": frame.depth_m[top:bottom, left:right] <= 0, "all": np.ones_like(silhouette, bool)}
+            classes["partial"] = ~classes["covered"] & ~classes["uncovered"]
+            for name, mask in classes.items():
+                errors[name] += float(squared_error[mask].sum())
+                pixels[name] += int(mask.sum())
             exposure = mapping.anchor_view(index).exposure
             with torch.no_grad():
                 compensated = (rendered if exposure is None else exposure.apply(rendered)).clamp(0.0, 1.0).cpu().numpy()[top:bottom, left:right]
             low = [cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
                    for image in (compensated, observed)]
             ssim_low.append(ssim_value(*low))
-    return {"psnr_exp": float(np.mean(psnr)), "ssim_exp": float(np.mean(ssim)), "ssim_low": float(np.mean(ssim_low))}
+    return {"psnr_exp": float(np.mean(psnr)), "ssim_exp": float(np.mean(ssim)), "ssim_low": float(np.mean(ssim_low)),
+            "error_shares": {name: errors[name] / max(errors["all"], 1e-12) for name in errors if name != "all"},
+            "pixel_shares": {name: pixels[name] / max(pixels["all"], 1) for name in pixels if name != "all"}}
 
 
 def limit_scores(mapping, poses: np.ndarray, frames: list[int], pose_iterations: int = 10) -> dict:
@@ -334,6 +352,10 @@ def table(rows: list[dict], fits: list[dict]) -> str:
             lines.append(f"{row['sequence'][:28]:28} {row['preset']:8} {state:5} {s['psnr']:6.2f} {s['ssim']:6.3f} "
                          f"{s['psnr_exp']:7.2f} {s['ssim_exp']:7.3f} {s['ssim_low']:7.3f} {s['fps']:6.2f} "
                          f"{s['seconds']:8.1f} {s['gaussians']:9d}")
+            if "error_shares" in s:
+                errors, pixels = s["error_shares"], s["pixel_shares"]
+                lines.append(f"{'':28} {'':8} {state:5} squared error as exported (share of pixels): " + ", ".join(
+                    f"{name} {100 * errors[name]:.1f} % ({100 * pixels[name]:.1f} %)" for name in errors))
         if "ceiling" in row:
             c = row["ceiling"]
             lines.append(f"{row['sequence'][:28]:28} {row['preset']:8} {'ceil':5} {'-':>6} {'-':>6} {c['psnr_exp']:7.2f} "

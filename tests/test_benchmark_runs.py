@@ -28,6 +28,12 @@ def test_sharp_splats_scores_the_map_before_and_after_the_pass_its_ceiling_and_l
     assert abs(row["off"]["gaussians"] - row["on"]["gaussians"]) <= 0.01 * row["off"]["gaussians"]
     assert row["off"]["psnr"] != row["on"]["psnr"]
     assert row["frames"] == 20 and row["sharpening_seconds"] > 0 and 10 < row["off"]["psnr"] < 40
+    # The silhouette classes split the pixels and the squared error between them; the synthetic room is measured
+    # everywhere.
+    for shares in (row["on"]["error_shares"], row["on"]["pixel_shares"]):
+        assert sum(shares[name] for name in ("covered", "partial", "uncovered")) == pytest.approx(1.0, abs=1e-9)
+        assert shares["unmeasured"] == 0.0
+    assert row["on"]["pixel_shares"]["covered"] > 0.9
     # The ceiling starts from the run's map and is fitted to the very frames it is scored on: it must score higher
     # there, with Gaussians added by its densification.
     ceiling = row["ceiling"]

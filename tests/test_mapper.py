@@ -19,7 +19,8 @@ from tambridge.bridge.view_selection import Selection
 from tambridge.config import Config
 from tambridge.gaussians.config import MapperConfig
 from tambridge.frontend.contract import KeyframeEvent, TrackResult
-from tambridge.gaussians.mapper import ADAM_EPS, GaussianMap, ViewExposure, ViewImages, densify_mask
+from tambridge.gaussians.mapper import (ADAM_EPS, GaussianMap, ViewExposure, ViewImages, densify_mask,
+                                       nearest_measured_depth_m)
 from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.gaussians.model import RenderOutput
 from tambridge.export.splats import load_ply
@@ -171,6 +172,80 @@ def test_densify_adds_one_pixel_gaussians_on_the_back_projected_pixels():
     means = gaussians.means_m.numpy()
     projected = means[:, :2] / means[:, 2:] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
     np.testing.assert_allclose(projected[0], [1.0, 0.0], atol=1e-4)  # row-major, pixel (0, 0) skipped
+
+
+def nearest_measured_depth_brute_force(depth):
+    """Slow twin of nearest_measured_depth_m: each pixel without depth against every pixel with one."""
+    rows, columns = np.nonzero(depth > 0)
+    filled = depth.copy()
+    for row, column in zip(*np.nonzero(depth <= 0)):
+        distances = np.hypot(rows - row, columns - column)
+        filled[row, column] = depth[rows, columns][np.argmin(distances)]
+    return filled, rows, columns
+
+
+def test_nearest_measured_depth_gives_each_hole_the_depth_of_a_nearest_measured_pixel():
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.5, 4.0, (30, 40)).astype(np.float32)
+    depth[rng.random((30, 40)) < 0.3] = 0.0
+    depth[22:, :] = 0.0  # a band too close for the sensor, as at the bottom of a frame looking down on a table
+    filled = nearest_measured_depth_m(torch.from_numpy(depth)).numpy()
+    expected, rows, columns = nearest_measured_depth_brute_force(depth)
+    measured = depth > 0
+    np.testing.assert_array_equal(filled[measured], depth[measured])
+    # Where two measured pixels are equally near, either depth is right: compare against all the nearest ones.
+    for row, column in zip(*np.nonzero(~measured)):
+        distances = np.hypot(rows - row, columns - column)
+        nearest = depth[rows, columns][np.isclose(distances, distances.min())]
+        assert filled[row, column] in nearest, (row, column)
+    assert np.mean(filled == expected) > 0.95
+    np.testing.assert_array_equal(nearest_measured_depth_m(torch.zeros(4, 5)).numpy(), np.zeros((4, 5)))
+
+
+def test_densify_unmeasured_fills_only_uncovered_pixels_without_depth_at_the_nearest_measured_depth():
+    camera = default_camera(8, 6)
+    depth = torch.full((6, 8), 2.0)
+    depth[:, :4] = 3.0
+    depth[4:, :] = 0.0  # the bottom two rows unmeasured
+    silhouette = torch.ones(6, 8)
+    silhouette[:, 5:] = 0.0  # the map covers all but the three right columns
+    rendered = RenderOutput(torch.zeros(6, 8, 3), silhouette * 2.0, silhouette)
+    images = ViewImages(torch.rand(6, 8, 3), depth)
+    gaussian_map = GaussianMap(MapperConfig())
+    gaussian_map.set_anchor_pose(0, np.eye(4))
+    assert gaussian_map.densify_unmeasured(0, camera, images, rendered, None, 0.0) == 0  # off
+    assert gaussian_map.densify_unmeasured(0, camera, images, rendered, None, 0.5) == 6  # rows 4-5, columns 5-7
+    gaussians = gaussian_map.gaussians()
+    torch.testing.assert_close(gaussians.means_m[:, 2], torch.full((6,), 2.0))  # the depth measured above them
+    torch.testing.assert_close(gaussians.rgb, images.rgb[4:, 5:].reshape(-1, 3))
+    empty_map = GaussianMap(MapperConfig())
+    empty_map.set_anchor_pose(0, np.eye(4))
+    assert empty_map.densify_unmeasured(0, camera, images, None, None, 0.5) == 16  # an empty map: every such pixel
+
+
+def test_unmeasured_surfaces_filled_in_one_view_render_at_a_nearby_one():
+    """A floor strip the depth camera missed in the only view: without the fill a nearby view shows it black."""
+    scene, camera = make_room_scene(0), default_camera(80, 60)
+    poses = loop_path(60)
+    colour, depth = render(scene, camera, poses[0])
+    depth[45:, :] = 0.0  # the bottom quarter unmeasured, as the Kinect leaves a table too close to it
+    images = ViewImages(torch.from_numpy(colour), torch.from_numpy(depth))
+    truth, _ = render(scene, camera, poses[1])
+
+    def strip_psnr(threshold):
+        gaussian_map = GaussianMap(MapperConfig())
+        gaussian_map.set_anchor_pose(0, poses[0])
+        gaussian_map.densify(0, camera, images, None)
+        added = gaussian_map.densify_unmeasured(0, camera, images, None, None, threshold)
+        gaussian_map.optimise(camera, [(poses[0], images)], [0] * 20)
+        rgb = gaussian_map.render(camera, poses[1]).rgb.clamp(0, 1).numpy()
+        error = np.mean((rgb[48:, 10:70] - truth[48:, 10:70]) ** 2)
+        return added, -10 * np.log10(error)
+
+    added_off, without = strip_psnr(0.0)
+    added_on, filled = strip_psnr(0.5)
+    assert added_off == 0 and added_on == 15 * 80
+    assert without < 12.0 and filled > without + 6.0, (without, filled)
 
 
 def test_prune_removes_transparent_and_oversized_gaussians():

@@ -87,6 +87,11 @@ class MapperConfig:
                                               "colour error (mean over channels) exceeds this (0: none)", UNIT)
     sharp_densify_fraction: float = setting(0.02, "... at most at this share of a view's pixels, the worst first",
                                             UNIT)
+    # The depth camera measures nothing too close, on dark or shiny surfaces; Gaussians only where it did leave holes
+    # that views nearby show black (docs/benchmarks.md, "Holes where the depth camera measured nothing").
+    densify_unmeasured: float = setting(0.5, "while mapping, each pixel of a view without measured depth where the "
+                                             "map's silhouette is below this gets a Gaussian at the nearest measured "
+                                             "depth (0: none)", UNIT)
     lr_means_m: float = setting(5e-4, "Adam learning rate of the Gaussian centres (m)", POSITIVE)
     lr_rgb: float = setting(1e-2, "Adam learning rate of the colours", POSITIVE)
     lr_log_radii: float = setting(1e-2, "Adam learning rate of the log radii", POSITIVE)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Sequence
 
+import cv2
 import numpy as np
 import torch
 
@@ -60,6 +61,22 @@ def backproject(depth_m: torch.Tensor, camera: Camera, mask: torch.Tensor) -> to
     rows, columns = torch.nonzero(mask, as_tuple=True)
     z = depth_m[rows, columns]
     return camera.backproject_torch(torch.stack([columns, rows], dim=1).to(z.dtype), z)
+
+
+def nearest_measured_depth_m(depth_m: torch.Tensor) -> torch.Tensor:
+    """(H, W) ``depth_m`` with every pixel without depth (0) given the depth of the nearest pixel with one (Euclidean
+    distance in pixels), all 0 where none has depth: a guess for surfaces the sensor did not measure (too close,
+    dark, shiny) that a view still shows."""
+    measured = (depth_m > 0).cpu().numpy()
+    if measured.all() or not measured.any():
+        return depth_m.clone()
+    # Each measured pixel is a zero of the input and gets its own label; every other pixel takes its nearest one's.
+    _, labels = cv2.distanceTransformWithLabels((~measured).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    depth = depth_m.cpu().numpy()
+    depth_of_label = np.zeros(int(labels.max()) + 1, depth.dtype)
+    depth_of_label[labels[measured]] = depth[measured]
+    return torch.from_numpy(depth_of_label[labels]).to(depth_m.device)
 
 
 def surface_depth_m(depth_m: torch.Tensor, silhouette: torch.Tensor) -> torch.Tensor:
@@ -335,6 +352,25 @@ class GaussianMap:
         else:
             mask = densify_mask(images.depth_m, rendered, self.config.densify_silhouette, self.config.densify_depth_factor)
         return self._add_pixels(anchor_id, camera, images, mask, exposure)
+
+    def densify_unmeasured(self, anchor_id: int, camera: Camera, images: ViewImages, rendered: RenderOutput | None,
+                           exposure: ViewExposure | None, silhouette_threshold: float) -> int:
+        """Add a one-pixel Gaussian (as :meth:`densify`) at each pixel of the view without measured depth where the
+        map leaves a hole (its silhouette in ``rendered``, the map at the view's pose, below
+        ``silhouette_threshold``; None: an empty map) and the colour has data, at :func:`nearest_measured_depth_m`:
+        surfaces the depth camera missed (too close, dark, shiny) that the colour still shows. Returns how many
+        were added (none at a threshold of 0)."""
+        if silhouette_threshold <= 0:
+            return 0
+        with torch.no_grad():
+            mask = images.depth_m <= 0
+            if rendered is not None:
+                mask &= rendered.silhouette < silhouette_threshold
+            if images.colour_valid is not None:
+                mask &= images.colour_valid
+            depth_m = nearest_measured_depth_m(images.depth_m)
+            mask &= depth_m > 0
+        return self._add_pixels(anchor_id, camera, dataclasses.replace(images, depth_m=depth_m), mask, exposure)
 
     def densify_colour_error(self, anchor_id: int, camera: Camera, images: ViewImages, exposure: ViewExposure | None,
                              threshold: float, fraction: float, world_from_subposes: np.ndarray | None = None) -> int:

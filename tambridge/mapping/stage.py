@@ -402,6 +402,8 @@ class MappingStage:
         self.map.set_anchor_pose(view.keyframe_id, world_from_camera)
         rendered = self.map.render(self.camera, world_from_camera) if len(self.map) else None
         added = self.map.densify(view.keyframe_id, self.camera, images, rendered, view.exposure)
+        added += self.map.densify_unmeasured(view.keyframe_id, self.camera, images, rendered, view.exposure,
+                                             self.mapper_config.densify_unmeasured)
         window = self.overlapping_views(world_from_camera, images)
         self.views.append(view)
         views = [self.posed_images(v, self.images(v.frame_index) if v is not view else images) for v in [view] + window]
