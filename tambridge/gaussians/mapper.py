@@ -67,13 +67,13 @@ def nearest_measured_depth_m(depth_m: torch.Tensor) -> torch.Tensor:
     """(H, W) ``depth_m`` with every pixel without depth (0) given the depth of the nearest pixel with one (Euclidean
     distance in pixels), all 0 where none has depth: a guess for surfaces the sensor did not measure (too close,
     dark, shiny) that a view still shows."""
-    measured = (depth_m > 0).cpu().numpy()
+    depth = depth_m.cpu().numpy()
+    measured = depth > 0
     if measured.all() or not measured.any():
         return depth_m.clone()
     # Each measured pixel is a zero of the input and gets its own label; every other pixel takes its nearest one's.
     _, labels = cv2.distanceTransformWithLabels((~measured).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE,
                                                 labelType=cv2.DIST_LABEL_PIXEL)
-    depth = depth_m.cpu().numpy()
     depth_of_label = np.zeros(int(labels.max()) + 1, depth.dtype)
     depth_of_label[labels[measured]] = depth[measured]
     return torch.from_numpy(depth_of_label[labels]).to(depth_m.device)

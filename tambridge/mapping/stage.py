@@ -185,13 +185,18 @@ class MappingStage:
         on it, so that every view renders as before (up to colours leaving [0, 1]) and the map's own colours, those
         a .ply holds, are a typical view's rather than the first view's or wherever the gain-colour ambiguity left
         them. Nothing without exposures."""
-        if not self.views or self.views[0].exposure is None or self.mapper_config.exposure_anchor is not ExposureAnchor.median:
+        if not self.has_exposures or self.mapper_config.exposure_anchor is not ExposureAnchor.median:
             return
         with torch.no_grad():
             reference = torch.quantile(torch.stack([view.exposure.parameters for view in self.views]), 0.5, dim=0)
             self.map.recolour(ViewExposure(reference, frozen=True))
             for view in self.views:
                 view.exposure.rebase(reference)
+
+    @property
+    def has_exposures(self) -> bool:
+        """Whether there are views and they carry exposures (``mapper.exposure_compensation``)."""
+        return bool(self.views) and self.views[0].exposure is not None
 
     @property
     def fits_frames_as_recorded(self) -> bool:
@@ -205,7 +210,7 @@ class MappingStage:
         the map's colours are the frames' own, and exposures fitted before it to other colours would render every
         view, and every frame anchored at it, through a stale transform. A view the fit cannot explain keeps its
         exposure. Returns how many were refitted; nothing without exposures."""
-        if not self.views or self.views[0].exposure is None:
+        if not self.has_exposures:
             return 0
         refitted = 0
         for view in self.views:
@@ -474,7 +479,7 @@ class MappingStage:
                         self.mapper_config.final_iterations_per_view, len(self.views), removed, len(self.map))
         if not self.fits_frames_as_recorded:
             self.anchor_exposures()
-        elif self.views and self.views[0].exposure is not None:
+        elif self.has_exposures:
             with self.run_log.stage("sharpening"), self.threads():
                 refitted = self.refit_exposures()
             logger.info("exposures refitted to the map as recorded: %d of %d views", refitted, len(self.views))
