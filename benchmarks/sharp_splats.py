@@ -3,6 +3,7 @@
     python benchmarks/sharp_splats.py                                   # 7-Scenes 0-299 and fr1/xyz 0-199, both presets
     python benchmarks/sharp_splats.py --cases 7scenes:default:700       # one case: sequence:preset:frames (0: all)
     python benchmarks/sharp_splats.py --fit 7scenes:300:0.25 --fit 7scenes:300:1.0   # upper bounds (below)
+    python benchmarks/sharp_splats.py --cases 7scenes:default:700 --pass-variant "l1:mapper.sharp_w_colour_squared=0"
 
 Every case is one ``reconstruct`` run in its own process (peak memory its own). On and off come from that same run:
 the sharpening pass is the last step of the mapping stage and nothing before it depends on it, so the run keeps a
@@ -23,6 +24,12 @@ the map built at ground-truth poses (7-Scenes: KinectFusion's, a pseudo ground t
 a handful of the views (sequence:frames:resolution_scale, the sharpening pass's resolution) and scored on those
 views and on held-out frames between them; where the folder has lossless PNGs of some frames beside its JPEGs
 (7-Scenes' rgb_png_lossless), the JPEGs' PSNR against them is the ceiling compression alone sets.
+
+``--pass-variant NAME:SETTING[;SETTING...]`` (repeatable; each SETTING ``mapper.key=value``) runs the pass again
+on the same map before it, once per variant with those settings, after the run: the same trajectory, the same map
+and the same random order of the views and frames, so the variants and the run's own pass differ by their settings
+alone; each is pruned and its exposures refitted as ``finish`` does, and scored like "on" (``variants``: the
+run's PSNR/SSIM through exposures, as exported, the error shares, the pass's seconds and Gaussians).
 
 ``--ceiling ROUNDS[:DENSIFY]`` adds an oracle to each case: after the run, its final map is fitted to the scored
 novel views themselves (the test frames: no run can do this), with no exposure, at full resolution, ROUNDS Adam
@@ -199,13 +206,14 @@ def ceiling_scores(mapping, poses: np.ndarray, frames: list[int], rounds: int, d
 
 
 def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[str],
-               ceiling: tuple[int, float] | None = None, limits: bool = False) -> dict:
+               ceiling: tuple[int, float] | None = None, limits: bool = False,
+               pass_variants: list[tuple[str, list[str]]] = ()) -> dict:
     """One run in this process, the map before the sharpening pass kept for the "off" scores; with ``ceiling``
-    (rounds, densify share), :func:`ceiling_scores` of the final map too; with ``limits``, :func:`limit_scores`."""
+    (rounds, densify share), :func:`ceiling_scores` of the final map too; with ``limits``, :func:`limit_scores`;
+    each of ``pass_variants`` (name, mapper settings) a pass again from that map (:func:`variant_scores`)."""
     import pipelines.reconstruct as pipeline
     from tambridge.config import load_config
     from tambridge.evaluation.mapping import evaluation_frames, score_views
-    from tambridge.gaussians.mapper import ViewExposure
     from tambridge.mapping.stage import MappingStage
     from tambridge.run_folder import Start
 
@@ -216,6 +224,10 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
     if camera_file is not None:
         overrides.append(f"input.camera_file={camera_file}")
     config = load_config(ROOT / "configs" / f"{preset}.yaml", overrides + ["mesh.enabled=false"])
+    # Each variant's settings are checked here, before the run.
+    variant_configs = {name: load_config(ROOT / "configs" / f"{preset}.yaml",
+                                         overrides + ["mesh.enabled=false"] + settings).mapper
+                       for name, settings in pass_variants}
     before: dict = {}
     rows: dict = {}
     sharpen = MappingStage.sharpen
@@ -223,7 +235,8 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
     def keeping_the_map(stage: MappingStage, frames_between=()) -> None:
         before["map"] = copy.deepcopy(stage.map.state_dict())
         before["exposures"] = [None if v.exposure is None else copy.deepcopy(v.exposure.state_dict()) for v in stage.views]
-        before["frames_between"] = len(frames_between)
+        before["frames_between"] = list(frames_between)
+        before["rng"] = copy.deepcopy(stage._rng.bit_generator.state)
         sharpen(stage, frames_between)
 
     mapping_metrics = pipeline.mapping_metrics
@@ -238,10 +251,11 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
         if limits:
             rows["limits"] = limit_scores(mapping, poses, novel)
         final_map = copy.deepcopy(mapping.map.state_dict()) if ceiling else None
+        if variant_configs:
+            rows["variants"] = {name: variant_scores(mapping, before, mapper_config, poses, novel)
+                                for name, mapper_config in variant_configs.items()}
         if before:
-            mapping.map.load_state_dict(before["map"])
-            for view, exposure in zip(mapping.views, before["exposures"]):
-                view.exposure = None if exposure is None else ViewExposure.from_state_dict(exposure)
+            restore_before_the_pass(mapping, before)
             # As a run without the pass: the final refinement's prune follows the pass.
             mapping.final_prune()
             scores = score_views(mapping, poses, novel).summary()
@@ -264,10 +278,45 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
         rows["off"].update(seconds=metrics.seconds_total - sharpening_s,
                            fps=metrics.frames / (metrics.seconds_total - sharpening_s))
     return {"sequence": sequence.name, "preset": preset, "frames": metrics.frames, "mapping_views": len(before["exposures"]) if before else None,
-            "frames_between": before.get("frames_between"),
+            "frames_between": len(before["frames_between"]) if before else None,
             "wall_seconds_process": wall, "sharpening_seconds": sharpening_s,
             "seconds_per_stage": metrics.seconds_per_stage, "peak_memory_mb": metrics.peak_memory_mb,
             "ate_cm": None if metrics.trajectory is None else metrics.trajectory.ate_rmse_m * 100, "extra": extra, **rows}
+
+
+def restore_before_the_pass(mapping, before: dict) -> None:
+    """The map, the views' exposures and the random generator as they were when the pass began."""
+    from tambridge.gaussians.mapper import ViewExposure
+
+    mapping.map.load_state_dict(copy.deepcopy(before["map"]))
+    for view, exposure in zip(mapping.views, before["exposures"]):
+        view.exposure = None if exposure is None else ViewExposure.from_state_dict(copy.deepcopy(exposure))
+    mapping._rng.bit_generator.state = copy.deepcopy(before["rng"])
+
+
+def variant_scores(mapping, before: dict, mapper_config, poses: np.ndarray, frames: list[int]) -> dict:
+    """The sharpening pass again from the map ``before`` it, with ``mapper_config``, then the prune and the refit of
+    the exposures that end ``MappingStage.finish``; scored through the exposures and as exported. The stage keeps
+    its own config afterwards (its map is the variant's)."""
+    from tambridge.evaluation.mapping import score_views
+
+    own = mapping.mapper_config
+    restore_before_the_pass(mapping, before)
+    mapping.mapper_config = mapping.map.config = mapper_config
+    started = time.perf_counter()
+    with mapping.threads():
+        if mapper_config.sharp_iterations_per_view:
+            mapping.sharpen(before["frames_between"])
+        mapping.final_prune()
+        if mapping.fits_frames_as_recorded:
+            mapping.refit_exposures()
+        else:
+            mapping.anchor_exposures()
+    seconds = time.perf_counter() - started
+    mapping.mapper_config = mapping.map.config = own
+    scores = score_views(mapping, poses, frames).summary()
+    return {"psnr": scores["psnr_db"], "ssim": scores["ssim"], "gaussians": len(mapping.map), "pass_seconds": seconds,
+            } | as_exported_scores(mapping, poses, frames)
 
 
 def fit_bound(sequence: Path, frames: int, scale: float, densify: float = 0.0, views: int = 4, steps: int = 60) -> dict:
@@ -331,6 +380,16 @@ def parse_ceiling(text: str) -> tuple[int, float]:
     return parsed
 
 
+def parse_pass_variant(text: str) -> tuple[str, list[str]]:
+    """``"l1:mapper.sharp_w_colour_squared=0;mapper.zeta=0.2"`` -> ("l1", [settings]); ValueError unless every
+    setting is a ``mapper.key=value``."""
+    name, _, settings = text.partition(":")
+    parsed = [item for item in settings.split(";") if item]
+    if not name or not parsed or not all(item.startswith("mapper.") and "=" in item for item in parsed):
+        raise ValueError(text)
+    return name, parsed
+
+
 def run_child(arguments: list[str], log: Path) -> dict | None:
     """This script in a child process (its own peak memory); the row it prints last, None if it failed."""
     log.parent.mkdir(parents=True, exist_ok=True)
@@ -361,6 +420,11 @@ def table(rows: list[dict], fits: list[dict]) -> str:
             lines.append(f"{row['sequence'][:28]:28} {row['preset']:8} {'ceil':5} {'-':>6} {'-':>6} {c['psnr_exp']:7.2f} "
                          f"{c['ssim_exp']:7.3f} {'-':>7} {'-':>6} {c['seconds']:8.1f} {c['gaussians']:9d}  (fitted to the "
                          f"scored frames: {c['rounds']} rounds, densify {c['densify']:g})")
+        for name, v in row.get("variants", {}).items():
+            lines.append(f"{row['sequence'][:28]:28} {row['preset']:8} {'var':5} {v['psnr']:6.2f} {v['ssim']:6.3f} "
+                         f"{v['psnr_exp']:7.2f} {v['ssim_exp']:7.3f} {v['ssim_low']:7.3f} {'-':>6} "
+                         f"{v['pass_seconds']:8.1f} {v['gaussians']:9d}  ({name}: the pass again from the same map; "
+                         "seconds: the pass's)")
         if "limits" in row:
             limit = row["limits"]
             lines.append(f"{row['sequence'][:28]:28} {row['preset']:8} limits: as exported {limit['psnr_exp']:.2f} dB; "
@@ -383,6 +447,9 @@ def main() -> None:
                         "frames themselves (an oracle; see above)")
     parser.add_argument("--limits", action="store_true", help="also score each case's final map with two oracles: "
                         "the best colour gain and bias per frame, and poses refined against the map (see above)")
+    parser.add_argument("--pass-variant", action="append", default=[], metavar="NAME:SETTING[;SETTING...]",
+                        help="also run the sharpening pass again from the same map with these mapper.* settings "
+                             "(see above); repeatable")
     parser.add_argument("--child", nargs=6, metavar=("SEQUENCE", "PRESET", "FRAMES", "OUT", "CEILING", "LIMITS"),
                         help=argparse.SUPPRESS)
     parser.add_argument("--child-fit", nargs=4, metavar=("SEQUENCE", "FRAMES", "SCALE", "DENSIFY"), help=argparse.SUPPRESS)
@@ -394,10 +461,17 @@ def main() -> None:
         except ValueError:
             parser.error(f"--ceiling {arguments.ceiling}: give ROUNDS (a whole number, 1 or more) and optionally "
                          ":DENSIFY (a share of pixels in [0, 1)), for example 10 or 10:0.02")
+    for variant in arguments.pass_variant:
+        try:
+            parse_pass_variant(variant)
+        except ValueError:
+            parser.error(f"--pass-variant {variant}: give NAME:SETTING[;SETTING...], each setting mapper.key=value, "
+                         "for example l1:mapper.sharp_w_colour_squared=0")
     if arguments.child:
         sequence, preset, frames, out, ceiling, limits = arguments.child
         print(json.dumps(child_case(Path(sequence), preset, int(frames), Path(out), arguments.set,
-                                    None if ceiling == "-" else parse_ceiling(ceiling), limits == "limits")))
+                                    None if ceiling == "-" else parse_ceiling(ceiling), limits == "limits",
+                                    [parse_pass_variant(variant) for variant in arguments.pass_variant])))
         return
     if arguments.child_fit:
         sequence, frames, scale, densify = arguments.child_fit
@@ -423,6 +497,7 @@ def main() -> None:
         name, preset, frames = case.split(":")
         out = RESULTS / "runs" / f"sharp_splats_{name}_{preset}_{frames}"
         extra = [item for setting in arguments.set for item in ("--set", setting)]
+        extra += [item for variant in arguments.pass_variant for item in ("--pass-variant", variant)]
         row = run_child(["--child", str(SEQUENCES[name]), preset, frames, str(out), arguments.ceiling or "-",
                          "limits" if arguments.limits else "-", *extra],
                         out.with_suffix(".log"))

@@ -15,7 +15,9 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_sharp_splats_scores_the_map_before_and_after_the_pass_its_ceiling_and_limits(synthetic_sequence_dir, tmp_path):
     out = tmp_path / "run"
     child = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "sharp_splats.py"), "--child",
-                            str(synthetic_sequence_dir), "default", "20", str(out), "10:0.01", "limits"],
+                            str(synthetic_sequence_dir), "default", "20", str(out), "10:0.01", "limits",
+                            "--pass-variant", "same:mapper.sharp_w_colour_squared=10",
+                            "--pass-variant", "l1:mapper.sharp_w_colour_squared=0"],
                            cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert child.returncode == 0, child.stderr[-3000:]
     row = json.loads(child.stdout.strip().splitlines()[-1])
@@ -34,6 +36,12 @@ def test_sharp_splats_scores_the_map_before_and_after_the_pass_its_ceiling_and_l
         assert sum(shares[name] for name in ("covered", "partial", "uncovered")) == pytest.approx(1.0, abs=1e-9)
         assert shares["unmeasured"] == 0.0
     assert row["on"]["pixel_shares"]["covered"] > 0.9
+    # A pass again from the same map with the run's own settings is the run's pass, to the bit: same map, same
+    # order of views and frames; another loss gives another map.
+    same, l1 = row["variants"]["same"], row["variants"]["l1"]
+    assert (same["psnr"], same["psnr_exp"], same["gaussians"]) == (row["on"]["psnr"], row["on"]["psnr_exp"],
+                                                                  row["on"]["gaussians"])
+    assert l1["psnr_exp"] != row["on"]["psnr_exp"] and l1["pass_seconds"] > 0
     # The ceiling starts from the run's map and is fitted to the very frames it is scored on: it must score higher
     # there, with Gaussians added by its densification.
     ceiling = row["ceiling"]

@@ -22,6 +22,7 @@ from tambridge.frontend.contract import KeyframeEvent, TrackResult
 from tambridge.gaussians.mapper import (ADAM_EPS, GaussianMap, ViewExposure, ViewImages, densify_mask,
                                        nearest_measured_depth_m)
 from tambridge.threads import TORCH_THREADS, compute_threads
+from tambridge.gaussians.losses import map_loss
 from tambridge.gaussians.model import RenderOutput
 from tambridge.export.splats import load_ply
 from tambridge.geometry import exp_se3, inverse, transform_points
@@ -79,7 +80,7 @@ def test_adam_step_moves_the_gaussians_with_a_gradient_as_torch_adam_and_no_othe
     params = {name: value.clone() for name, value in gaussian_map._params.items()}
     before = {name: value.clone() for name, value in params.items()}
     reference = {name: value[:with_gradient].clone().requires_grad_(True) for name, value in params.items()}
-    optimisers = [torch.optim.Adam([reference[name]], lr=scale * gaussian_map._learning_rates[name], eps=ADAM_EPS)
+    optimisers = [torch.optim.Adam([reference[name]], lr=scale * gaussian_map.learning_rates[name], eps=ADAM_EPS)
                   for name in reference]
     exp_avg = {name: torch.zeros_like(value) for name, value in params.items()}
     exp_avg_sq = {name: torch.zeros_like(value) for name, value in params.items()}
@@ -146,6 +147,41 @@ def test_exposure_of_a_darker_view_is_recovered_and_the_map_keeps_the_first_view
     assert torch.equal(exposures[0].parameters, torch.zeros(2, 3))
     first = gaussian_map.render(camera, views[0][0]).rgb
     assert float((first - views[0][1].rgb).abs().mean()) < 0.03
+
+
+def test_the_squared_colour_term_adds_its_weight_times_the_mean_squared_error():
+    generator = torch.Generator().manual_seed(0)
+    rendered, observed = torch.rand((12, 16, 3), generator=generator), torch.rand((12, 16, 3), generator=generator)
+    depth_rendered, depth_observed = torch.rand((12, 16), generator=generator), torch.rand((12, 16), generator=generator)
+    without = map_loss(rendered, depth_rendered, observed, depth_observed, 0.3, 0.5, 1.0)
+    with_term = map_loss(rendered, depth_rendered, observed, depth_observed, 0.3, 0.5, 1.0, 10.0)
+    expected = 0.7 * 10.0 * float(np.mean((rendered.numpy().astype(np.float64) - observed.numpy()) ** 2))
+    assert float(with_term - without) == pytest.approx(expected, rel=1e-5)
+
+
+def test_a_squared_colour_term_moves_colours_the_frames_disagree_on_towards_their_mean():
+    """Three frames of one pose at gains 0.5, 0.6 and 1.0 (auto exposure): their median is 0.6, their mean 0.7.
+    Fitted with L1 alone the map settles near the median; with the squared term nearer the mean, and its mean
+    squared error against the three frames, what PSNR scores, is lower."""
+    scene, camera = make_room_scene(0), default_camera(40, 30)
+    pose = loop_path(60)[0]
+    colour, depth = render(scene, camera, pose)
+    base = torch.from_numpy(colour)
+    frames = [ViewImages(base * gain, torch.from_numpy(depth)) for gain in (0.5, 0.6, 1.0)]
+    fitted = {}
+    for weight in (0.0, 20.0):
+        gaussian_map = GaussianMap(MapperConfig())
+        gaussian_map.set_anchor_pose(0, pose)
+        gaussian_map.densify(0, camera, ViewImages(base * 0.6, torch.from_numpy(depth)), None)
+        gaussian_map.optimise(camera, [(pose, images) for images in frames], [0, 1, 2] * 60, w_colour_squared=weight)
+        rendered = gaussian_map.render(camera, pose).rgb.detach()
+        gain = float((rendered * base).sum() / (base * base).sum())
+        squared_error = float(np.mean([((rendered - images.rgb) ** 2).mean() for images in frames]))
+        fitted[weight] = gain, squared_error
+    (gain_l1, error_l1), (gain_squared, error_squared) = fitted[0.0], fitted[20.0]
+    assert abs(gain_l1 - 0.6) < 0.04, fitted
+    assert gain_squared > gain_l1 + 0.04 and abs(gain_squared - 0.7) < abs(gain_l1 - 0.7), fitted
+    assert error_squared < 0.95 * error_l1, fitted
 
 
 def test_densify_mask_on_a_hand_made_render():

@@ -82,10 +82,11 @@ def test_sharpening_reads_frames_again_at_its_resolution_a_chunk_at_a_time(synth
     calls, scales = [], []
     optimise = stage.map.optimise
 
-    def recording(camera, views, schedule, exposures=None, learning_rate_scale=1.0):
+    def recording(camera, views, schedule, exposures=None, learning_rate_scale=1.0,
+                  w_colour_squared=0.0):
         calls.append(((camera.width, camera.height), [tuple(images.rgb.shape) for _, images in views], list(schedule)))
         scales.append(learning_rate_scale)
-        return optimise(camera, views, schedule, exposures, learning_rate_scale)
+        return optimise(camera, views, schedule, exposures, learning_rate_scale, w_colour_squared)
 
     monkeypatch.setattr(stage.map, "optimise", recording)
     stage.sharpen()
@@ -109,9 +110,10 @@ def test_sharpening_never_runs_coarser_than_the_mapping(synthetic_sequence_dir, 
     sizes = []
     optimise = stage.map.optimise
 
-    def recording(camera, views, schedule, exposures=None, learning_rate_scale=1.0):
+    def recording(camera, views, schedule, exposures=None, learning_rate_scale=1.0,
+                  w_colour_squared=0.0):
         sizes.append((camera.width, camera.height))
-        return optimise(camera, views, schedule, exposures, learning_rate_scale)
+        return optimise(camera, views, schedule, exposures, learning_rate_scale, w_colour_squared)
 
     monkeypatch.setattr(stage.map, "optimise", recording)
     stage.sharpen()
@@ -131,9 +133,10 @@ def test_frames_between_are_fitted_at_their_own_resolution_in_chunks_of_their_ow
     calls = []
     optimise = stage.map.optimise
 
-    def recording(camera, views, schedule, exposures=None, learning_rate_scale=1.0):
+    def recording(camera, views, schedule, exposures=None, learning_rate_scale=1.0,
+                  w_colour_squared=0.0):
         calls.append(((camera.width, camera.height), {tuple(images.rgb.shape) for _, images in views}, len(views)))
-        return optimise(camera, views, schedule, exposures, learning_rate_scale)
+        return optimise(camera, views, schedule, exposures, learning_rate_scale, w_colour_squared)
 
     monkeypatch.setattr(stage.map, "optimise", recording)
     stage.sharpen(frames)

@@ -76,6 +76,12 @@ class MapperConfig:
     sharp_lr_scale_start: float = setting(2.0, "the sharpening pass's learning rates, as multiples of the online ones "
                                                "(lr_*), fall linearly over the pass from this ...", POSITIVE)
     sharp_lr_scale_end: float = setting(0.1, "... to this (equal: constant)", POSITIVE)
+    # PSNR is a squared-error figure: where the frames disagree on a surface's colour (auto exposure, reflections,
+    # poses a pixel off) the squared term moves it to their mean, which scores higher than L1's median, for a
+    # little SSIM (docs/benchmarks.md, "A squared colour term in the pass").
+    sharp_w_colour_squared: float = setting(10.0, "weight of the squared colour error (mean over pixels and "
+                                                  "channels) added to the mapping loss in the sharpening pass "
+                                                  "(0: the online loss alone)", NON_NEGATIVE)
     # The views' exposures keep the online map in the median view's colours, which no recorded frame shows; fitted
     # to the frames as recorded, the map's colours become what the frames that see each surface show, which is what
     # a viewer of splats.ply shows: more PSNR as exported at the same cost (docs/benchmarks.md, "Sharp splats").

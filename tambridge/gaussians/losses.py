@@ -102,14 +102,20 @@ def map_loss(
     zeta: float,
     w_depth: float,
     w_colour: float,
+    w_colour_squared: float = 0.0,
 ) -> torch.Tensor:
-    """The mapper's loss ``(1 - zeta)(w_depth L1(D) + w_colour L1(C)) + zeta (1 - SSIM(C))`` (paper Sec. 3.4).
+    """The mapper's loss ``(1 - zeta)(w_depth L1(D) + w_colour L1(C) + w_colour_squared MSE(C)) + zeta (1 - SSIM(C))``
+    (paper Sec. 3.4, which has no squared term: ``w_colour_squared`` 0).
 
-    Depth L1 runs over the pixels with a valid observed depth (> 0: the sensor says nothing elsewhere); colour L1
-    and SSIM over the whole image, so that empty space is learnt as background too.
+    Depth L1 runs over the pixels with a valid observed depth (> 0: the sensor says nothing elsewhere); the colour
+    terms and SSIM over the whole image, so that empty space is learnt as background too. MSE is the mean over
+    pixels and channels; where frames disagree on a surface's colour it pulls towards their mean, which is what
+    PSNR rewards, where L1 settles on their median.
     """
     valid_depth = observed_depth_m > 0
     everywhere = torch.ones_like(valid_depth)
     l1_depth = masked_l1(rendered_depth_m, observed_depth_m, valid_depth)
-    l1_colour = masked_l1(rendered_rgb, observed_rgb, everywhere)
-    return (1.0 - zeta) * (w_depth * l1_depth + w_colour * l1_colour) + zeta * (1.0 - ssim(rendered_rgb, observed_rgb))
+    colour = w_colour * masked_l1(rendered_rgb, observed_rgb, everywhere)
+    if w_colour_squared:
+        colour = colour + w_colour_squared * (rendered_rgb - observed_rgb).square().mean()
+    return (1.0 - zeta) * (w_depth * l1_depth + colour) + zeta * (1.0 - ssim(rendered_rgb, observed_rgb))

@@ -249,12 +249,12 @@ class GaussianMap:
         self._anchor_rows = torch.zeros(0, dtype=torch.long, device=self.device)
         self._anchor_ids: list[int] = []
         self._world_from_anchor = torch.zeros((0, 4, 4), dtype=torch.float64, device=self.device)
-        self._learning_rates = {
-            "means_anchor_m": config.lr_means_m,
-            "rgb": config.lr_rgb,
-            "log_radii_m": config.lr_log_radii,
-            "opacity_logits": config.lr_opacity_logits,
-        }
+
+    @property
+    def learning_rates(self) -> dict[str, float]:
+        """Adam's learning rate of each field, from ``config`` (a config replaced later takes effect)."""
+        return {"means_anchor_m": self.config.lr_means_m, "rgb": self.config.lr_rgb,
+                "log_radii_m": self.config.lr_log_radii, "opacity_logits": self.config.lr_opacity_logits}
 
     def __len__(self) -> int:
         return int(self._params["rgb"].shape[0])
@@ -444,7 +444,8 @@ class GaussianMap:
     # ---- optimisation ---------------------------------------------------------------------------------------
 
     def optimise(self, camera: Camera, views: Sequence[tuple[np.ndarray, ViewImages]], schedule: Sequence[int],
-                 exposures: Sequence[ViewExposure | None] | None = None, learning_rate_scale: float = 1.0) -> list[float]:
+                 exposures: Sequence[ViewExposure | None] | None = None, learning_rate_scale: float = 1.0,
+                 w_colour_squared: float = 0.0) -> list[float]:
         """Adam steps of the map loss with the poses fixed: step k renders ``views[schedule[k]]``; returns the losses.
 
         ``views`` are ``(world_from_camera, images)`` pairs at ``camera``'s resolution, the pose (4, 4) or a
@@ -454,7 +455,7 @@ class GaussianMap:
         that gets no gradient in a step (outside that step's view) does not move and its Adam state is unchanged.
         ``exposures`` (one per view, or None) maps the render to the view's exposure before the loss; those not
         frozen are optimised along with the Gaussians. The Gaussians' learning rates are ``learning_rate_scale``
-        times ``config.lr_*``.
+        times ``config.lr_*``; ``w_colour_squared`` weighs the squared colour error in :func:`map_loss`.
         """
         if not schedule or len(self) == 0:
             return []
@@ -480,7 +481,7 @@ class GaussianMap:
                 # Where the frame has no colour the target is the render itself: those pixels pull on nothing.
                 observed_rgb = torch.where(images.colour_valid[..., None], observed_rgb, rendered_rgb.detach())
             loss = map_loss(rendered_rgb, rendered.depth_m, observed_rgb, images.depth_m,
-                            self.config.zeta, self.config.w_depth, self.config.w_colour)
+                            self.config.zeta, self.config.w_depth, self.config.w_colour, w_colour_squared)
             loss.backward()
             params = {name: leaf.detach() for name, leaf in leaves.items()}
             steps = self._adam_step(params, {name: leaf.grad for name, leaf in leaves.items()}, exp_avg, exp_avg_sq, steps,
@@ -513,13 +514,14 @@ class GaussianMap:
         decay2 = 1.0 - (1.0 - beta2) * mask
         step_size = mask / (1.0 - beta1 ** steps.clamp(min=1))
         root_correction = torch.rsqrt(1.0 - beta2 ** steps.clamp(min=1))
+        learning_rates = self.learning_rates
         with torch.no_grad():
             for name, grad in grads.items():
                 shape = (-1,) + (1,) * (grad.dim() - 1)
                 exp_avg[name].mul_(decay1.view(shape)).add_(grad, alpha=1.0 - beta1)
                 exp_avg_sq[name].mul_(decay2.view(shape)).addcmul_(grad, grad, value=1.0 - beta2)
                 denominator = exp_avg_sq[name].sqrt().mul_(root_correction.view(shape)).add_(ADAM_EPS)
-                scaled = exp_avg[name] * (self._learning_rates[name] * learning_rate_scale * step_size).view(shape)
+                scaled = exp_avg[name] * (learning_rates[name] * learning_rate_scale * step_size).view(shape)
                 params[name].addcdiv_(scaled, denominator, value=-1.0)
             # Colours are optimised directly (as SplaTAM does) and kept in the displayable range.
             params["rgb"].clamp_(0.0, 1.0)
@@ -538,7 +540,7 @@ class GaussianMap:
 
     def state_dict(self) -> dict:
         """Parameters, Adam state, anchors and anchor poses (tensors on the CPU), for checkpoints."""
-        return _tensors_to(attribute_state(self, ("config", "device", "_learning_rates")), torch.device("cpu"))
+        return _tensors_to(attribute_state(self, ("config", "device")), torch.device("cpu"))
 
     def load_state_dict(self, state: dict) -> None:
         """Continue from :meth:`state_dict` (on a map built with the same config); tensors go to this map's device."""

@@ -523,7 +523,8 @@ class MappingStage:
         Gaussians added where a view's colour error is worst (``sharp_densify_*``, first round), then
         ``sharp_iterations_per_view`` rounds of one Adam step on each view and frame, a chunk of views or of frames
         at a time so that only a window's frames are held, in a new order each round, at learning rates falling
-        from ``sharp_lr_scale_start`` to ``sharp_lr_scale_end`` times the online ones; through the views' exposures
+        from ``sharp_lr_scale_start`` to ``sharp_lr_scale_end`` times the online ones, with the squared colour error
+        weighed by ``sharp_w_colour_squared`` beside the online loss's terms; through the views' exposures
         (a frame between: its anchor view's), or against the frames as recorded (``sharp_through_exposures``)."""
         config = self.mapper_config
         # Never coarser than the online mapping: a map fitted at a finer resolution would only be blurred.
@@ -561,7 +562,7 @@ class MappingStage:
                     posed.append((poses, images))
                 self.map.optimise(camera, posed, list(range(len(chunk))),
                                   self.exposures(exposure_views) if config.sharp_through_exposures else None,
-                                  learning_rate_scale)
+                                  learning_rate_scale, config.sharp_w_colour_squared)
         logger.info("sharpening at %dx%d: %d steps per view over %d views and %d frames between them (at %dx%d), "
                     "+%d Gaussians -> %d", cameras[MappingView].width, cameras[MappingView].height,
                     config.sharp_iterations_per_view, len(self.views), len(frames_between), cameras[FrameBetween].width,
