@@ -19,11 +19,13 @@ from tambridge.bridge.view_selection import Selection
 from tambridge.config import Config
 from tambridge.gaussians.config import MapperConfig
 from tambridge.frontend.contract import KeyframeEvent, TrackResult
-from tambridge.gaussians.mapper import (ADAM_EPS, GaussianMap, ViewExposure, ViewImages, densify_mask,
-                                       nearest_measured_depth_m)
+from tambridge.gaussians.adam_kernel import adam_step_numba
+from tambridge.gaussians.mapper import (ADAM_BETAS, ADAM_EPS, GaussianMap, ViewExposure, ViewImages, adam_step_torch,
+                                       densify_mask, nearest_measured_depth_m)
 from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.gaussians.losses import map_loss
 from tambridge.gaussians.model import RenderOutput
+from tambridge.gaussians.rasterizer import render as render_gaussians
 from tambridge.export.splats import load_ply
 from tambridge.geometry import exp_se3, inverse, transform_points
 from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render
@@ -120,6 +122,26 @@ def test_gaussians_outside_the_view_do_not_move():
         torch.testing.assert_close(value[100:], before[name][100:], atol=0, rtol=0)
         assert not torch.equal(value[:100], before[name][:100])
     assert torch.equal(gaussian_map._steps[100:], torch.zeros(30))
+
+
+def test_visible_rows_over_several_poses_are_the_union_of_each_poses_and_all_a_render_needs():
+    camera = default_camera(40, 30)
+    turned = exp_se3(np.array([0.0, 0.0, 0.0, 0.0, np.pi / 2, 0.0]))
+    gaussian_map = small_map([np.eye(4), turned], [100, 60])
+    poses = [np.eye(4), turned, exp_se3(np.array([0.2, 0.0, 0.0, 0.0, np.pi / 4, 0.0]))]
+    each = [set(gaussian_map.visible_rows(camera, pose).tolist()) for pose in poses]
+    assert all(each) and each[0] != each[1]
+    together = gaussian_map.visible_rows(camera, np.stack(poses))
+    assert together.tolist() == sorted(set.union(*each))
+    # The Gaussians a pose does not see change nothing in its render.
+    everything = gaussian_map.gaussians()
+    for pose, rows in zip(poses, each):
+        rows = torch.tensor(sorted(rows))
+        seen = type(everything)(*(getattr(everything, field)[rows] for field in ("means_m", "rgb", "log_radii_m",
+                                                                                 "opacity_logits")))
+        full, only = (render_gaussians(gaussians, camera, pose) for gaussians in (everything, seen))
+        torch.testing.assert_close(only.rgb, full.rgb, atol=1e-6, rtol=0)
+        torch.testing.assert_close(only.depth_m, full.depth_m, atol=1e-6, rtol=0)
 
 
 def test_exposure_of_a_darker_view_is_recovered_and_the_map_keeps_the_first_views_colours():
@@ -545,3 +567,37 @@ def test_reconstruct_sharpens_on_frames_between_views_but_never_on_the_scored_on
     assert len(fitted) <= int(np.minimum(gaps, 2).sum())
     assert not set(fitted) & (set(range(0, 20, config.evaluation.novel_view_every)) | keyframe_frames)
     assert all(0 < index < 20 for index in fitted)
+
+
+def test_the_numba_adam_step_is_the_torch_steps_twin():
+    """Random parameters, moments and step counts; Gaussians without a gradient, with one in the colour alone, and
+    colours pushed out of [0, 1]: after three steps both give the same parameters, moments and counts."""
+    generator = torch.Generator().manual_seed(3)
+    count = 500
+    shapes = {"means_anchor_m": (count, 3), "rgb": (count, 3), "log_radii_m": (count,), "opacity_logits": (count,)}
+    tables = [{name: torch.randn(shape, generator=generator) for name, shape in shapes.items()} for _ in range(2)]
+    params, exp_avg = tables
+    params["rgb"] = torch.rand(shapes["rgb"], generator=generator)
+    exp_avg_sq = {name: torch.rand(shape, generator=generator) for name, shape in shapes.items()}
+    steps = torch.randint(0, 50, (count,), generator=generator).float()
+    rates = {"means_anchor_m": 1e-3, "rgb": 0.4, "log_radii_m": 5e-3, "opacity_logits": 0.05}
+    copies = [[{name: value.clone() for name, value in table.items()} for table in (params, exp_avg, exp_avg_sq)]
+              for _ in range(2)]
+    counts = [steps, steps]
+    for _ in range(3):
+        grads = {name: torch.randn(shape, generator=generator) for name, shape in shapes.items()}
+        for name in grads:
+            grads[name][:100] = 0.0
+            if name != "rgb":
+                grads[name][100:200] = 0.0
+        for index, step in enumerate((adam_step_numba, adam_step_torch)):
+            fitted, first, second = copies[index]
+            counts[index] = step(fitted, grads, first, second, counts[index], rates, ADAM_BETAS, ADAM_EPS)
+    assert torch.equal(counts[0], counts[1])
+    assert torch.equal(counts[0][:100], steps[:100]) and torch.equal(counts[0][100:], steps[100:] + 3)
+    for fast, slow in zip(*copies):
+        for name in shapes:
+            # The torch step's float32 ``1 - beta2 ** t`` loses up to 3e-5 of its value at small t; the kernel's is float64.
+            torch.testing.assert_close(fast[name], slow[name], atol=1e-5, rtol=1e-4)
+    assert all(torch.equal(copies[0][0][name][:100], params[name][:100]) for name in shapes)
+    assert copies[0][0]["rgb"].min() == 0.0 and copies[0][0]["rgb"].max() == 1.0

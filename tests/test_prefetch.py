@@ -10,7 +10,7 @@ from pipelines.reconstruct import RunCounters, track_frames
 from tambridge.frontend.open3d.odometry import FrameToFrameOdometry
 from tambridge.frontend.orb.frontend import OrbFrontend
 from tambridge.frontend.orb.config import OrbFrontendConfig
-from tambridge.io.prefetch import FramePrefetcher
+from tambridge.io.prefetch import FramePrefetcher, ReadAhead
 from tambridge.io.tum import Frame, open_sequence
 from tambridge.runlog import RunLog
 
@@ -147,4 +147,28 @@ def test_a_frontend_without_extract_tracks_prefetched_frames_as_without(syntheti
     _, final, _ = _track_prefetched(sequence, FrameToFrameOdometry(sequence.camera), tmp_path)
     # Open3D's odometry runs in several threads: its poses agree to round-off, not bit for bit.
     np.testing.assert_allclose(final.trajectory.world_from_camera, expected, atol=1e-9)
+    assert not _prefetch_threads()
+
+
+@pytest.mark.parametrize("ahead", [0, 1, 3])
+def test_read_ahead_gives_each_read_in_order(ahead):
+    frames = _Frames(10)
+    order = [7, 2, 2, 9, 0, 5]
+    with ReadAhead(order, frames.__getitem__, ahead) as reading:
+        assert [frame.index for frame in reading] == order
+    here = threading.current_thread().name
+    assert all((name == here) == (ahead == 0) for name in frames.readers)
+    assert not _prefetch_threads()
+
+
+def test_read_ahead_raises_a_broken_read_when_reached_and_holds_at_most_ahead_plus_one():
+    frames = _Frames(10, broken=4)
+    seen = []
+    with pytest.raises(ValueError, match="frame 4 is corrupt"):
+        with ReadAhead(list(range(10)), frames.__getitem__, ahead=2) as reading:
+            for frame in reading:
+                # While the caller has item i, items i+1 and i+2 at most have been read.
+                assert len(frames.readers) <= frame.index + 3
+                seen.append(frame.index)
+    assert seen == [0, 1, 2, 3]
     assert not _prefetch_threads()

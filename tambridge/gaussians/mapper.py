@@ -22,6 +22,7 @@ import torch
 from tambridge.camera import Camera
 from tambridge.gaussians.config import MapperConfig
 from tambridge.state import attribute_state, restore_attributes
+from tambridge.gaussians.adam_kernel import adam_step_numba
 from tambridge.gaussians.losses import map_loss
 from tambridge.gaussians.model import (
     NEAR_PLANE_M,
@@ -227,6 +228,39 @@ def fit_exposure(rendered_rgb: torch.Tensor, observed_rgb: torch.Tensor, mask: t
     return torch.stack([gain.log(), bias]).to(rendered_rgb.dtype)
 
 
+def adam_step_torch(params: dict, grads: dict, exp_avg: dict, exp_avg_sq: dict, steps: torch.Tensor,
+                    learning_rates: dict[str, float], betas: tuple[float, float], eps: float) -> torch.Tensor:
+    """One Adam step (Kingma & Ba 2015), in place on ``params``, ``exp_avg`` and ``exp_avg_sq`` (dicts of tensors
+    (M, ...) by field), on the Gaussians with a nonzero gradient in some field of ``grads``, at ``learning_rates`` by
+    field; colours clamped to [0, 1]. Returns the new step counts (M,). The twin of the CPU kernel, and the step on a
+    GPU (torch.optim.Adam is the twin the tests compare it with).
+
+    A Gaussian without a gradient has a zero gradient in every field: with its decay factors and step size set to 1, 1
+    and 0 the same in-place expressions leave its moments and parameters as they were, so no masked copies are
+    made."""
+    beta1, beta2 = betas
+    touched = torch.zeros(len(steps), dtype=torch.bool, device=steps.device)
+    for grad in grads.values():
+        touched |= (grad.reshape(len(steps), -1) != 0).any(dim=1)
+    mask = touched.to(steps.dtype)
+    steps = steps + mask
+    decay1 = 1.0 - (1.0 - beta1) * mask
+    decay2 = 1.0 - (1.0 - beta2) * mask
+    step_size = mask / (1.0 - beta1 ** steps.clamp(min=1))
+    root_correction = torch.rsqrt(1.0 - beta2 ** steps.clamp(min=1))
+    with torch.no_grad():
+        for name, grad in grads.items():
+            shape = (-1,) + (1,) * (grad.dim() - 1)
+            exp_avg[name].mul_(decay1.view(shape)).add_(grad, alpha=1.0 - beta1)
+            exp_avg_sq[name].mul_(decay2.view(shape)).addcmul_(grad, grad, value=1.0 - beta2)
+            denominator = exp_avg_sq[name].sqrt().mul_(root_correction.view(shape)).add_(eps)
+            scaled = exp_avg[name] * (learning_rates[name] * step_size).view(shape)
+            params[name].addcdiv_(scaled, denominator, value=-1.0)
+        # Colours are optimised directly (as SplaTAM does) and kept in the displayable range.
+        params["rgb"].clamp_(0.0, 1.0)
+    return steps
+
+
 class GaussianMap:
     """Isotropic Gaussians anchored to mapping views, with their Adam state.
 
@@ -287,19 +321,21 @@ class GaussianMap:
         return GaussianTensors(means_world, params["rgb"], params["log_radii_m"], params["opacity_logits"])
 
     def visible_rows(self, camera: Camera, world_from_camera: np.ndarray) -> torch.Tensor:
-        """(M,) long indices of the Gaussians whose bounding disc (of the 3-sigma ellipse) can touch the image of
-        ``camera`` at this pose: exactly those the CPU kernel bins."""
+        """(M,) long indices, ascending, of the Gaussians whose bounding disc (of the 3-sigma ellipse) can touch the
+        image of ``camera`` at this pose (4, 4), or at any of these poses (K, 4, 4): exactly those the CPU kernel
+        bins."""
         with torch.no_grad():
             gaussians = self.gaussians()
-            means_camera = camera_frame_means(gaussians, torch.as_tensor(np.asarray(world_from_camera, np.float64)))
-            screen = project_to_screen(gaussians, means_camera, camera)
-            reach = screen.bounds_px
-            u, v = screen.means_px[:, 0], screen.means_px[:, 1]
-            inside = (
-                (screen.depths_m > NEAR_PLANE_M)
-                & (u + reach >= 0) & (u - reach <= camera.width - 1)
-                & (v + reach >= 0) & (v - reach <= camera.height - 1)
-            )
+            inside = torch.zeros(len(gaussians.means_m), dtype=torch.bool, device=gaussians.means_m.device)
+            for pose in np.asarray(world_from_camera, np.float64).reshape(-1, 4, 4):
+                screen = project_to_screen(gaussians, camera_frame_means(gaussians, torch.as_tensor(pose)), camera)
+                reach = screen.bounds_px
+                u, v = screen.means_px[:, 0], screen.means_px[:, 1]
+                inside |= (
+                    (screen.depths_m > NEAR_PLANE_M)
+                    & (u + reach >= 0) & (u - reach <= camera.width - 1)
+                    & (v + reach >= 0) & (v - reach <= camera.height - 1)
+                )
             return torch.nonzero(inside).squeeze(1)
 
     def render(self, camera: Camera, world_from_camera: np.ndarray) -> RenderOutput:
@@ -459,8 +495,7 @@ class GaussianMap:
         """
         if not schedule or len(self) == 0:
             return []
-        rows = torch.unique(torch.cat([self.visible_rows(camera, pose) for poses, _ in views
-                                       for pose in np.asarray(poses).reshape(-1, 4, 4)]))
+        rows = self.visible_rows(camera, np.concatenate([np.asarray(poses).reshape(-1, 4, 4) for poses, _ in views]))
         params = {name: value[rows].clone() for name, value in self._params.items()}
         exp_avg = {name: value[rows].clone() for name, value in self._exp_avg.items()}
         exp_avg_sq = {name: value[rows].clone() for name, value in self._exp_avg_sq.items()}
@@ -499,33 +534,11 @@ class GaussianMap:
     def _adam_step(self, params: dict, grads: dict, exp_avg: dict, exp_avg_sq: dict, steps: torch.Tensor,
                    learning_rate_scale: float = 1.0) -> torch.Tensor:
         """One Adam step (Kingma & Ba 2015), in place, on the Gaussians with a gradient, at ``learning_rate_scale``
-        times the configured learning rates; returns their step counts (M,).
-
-        A Gaussian without one has a zero gradient in every field: with its decay factors and step size set to 1, 1
-        and 0 the same in-place expressions leave its moments and parameters as they were, so no masked copies are
-        made (torch.optim.Adam is the twin the tests compare with)."""
-        beta1, beta2 = ADAM_BETAS
-        touched = torch.zeros(len(steps), dtype=torch.bool, device=steps.device)
-        for grad in grads.values():
-            touched |= (grad.reshape(len(steps), -1) != 0).any(dim=1)
-        mask = touched.to(steps.dtype)
-        steps = steps + mask
-        decay1 = 1.0 - (1.0 - beta1) * mask
-        decay2 = 1.0 - (1.0 - beta2) * mask
-        step_size = mask / (1.0 - beta1 ** steps.clamp(min=1))
-        root_correction = torch.rsqrt(1.0 - beta2 ** steps.clamp(min=1))
-        learning_rates = self.learning_rates
-        with torch.no_grad():
-            for name, grad in grads.items():
-                shape = (-1,) + (1,) * (grad.dim() - 1)
-                exp_avg[name].mul_(decay1.view(shape)).add_(grad, alpha=1.0 - beta1)
-                exp_avg_sq[name].mul_(decay2.view(shape)).addcmul_(grad, grad, value=1.0 - beta2)
-                denominator = exp_avg_sq[name].sqrt().mul_(root_correction.view(shape)).add_(ADAM_EPS)
-                scaled = exp_avg[name] * (learning_rates[name] * learning_rate_scale * step_size).view(shape)
-                params[name].addcdiv_(scaled, denominator, value=-1.0)
-            # Colours are optimised directly (as SplaTAM does) and kept in the displayable range.
-            params["rgb"].clamp_(0.0, 1.0)
-        return steps
+        times the configured learning rates; returns their step counts (M,). On the CPU in one numba pass
+        (:func:`tambridge.gaussians.adam_kernel.adam_step_numba`), elsewhere :func:`adam_step_torch`."""
+        learning_rates = {name: rate * learning_rate_scale for name, rate in self.learning_rates.items()}
+        step = adam_step_numba if steps.device.type == "cpu" else adam_step_torch
+        return step(params, grads, exp_avg, exp_avg_sq, steps, learning_rates, ADAM_BETAS, ADAM_EPS)
 
     def recolour(self, exposure: ViewExposure) -> None:
         """Replace every Gaussian's colour by ``exposure.apply`` of it (kept in [0, 1]): the map in another view's

@@ -10,13 +10,16 @@ preparing a frame is raised when the caller reaches that frame. The reader also 
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
-from typing import Callable, Generic, Iterator, TypeVar
+from typing import Callable, Generic, Iterator, Sequence, TypeVar
 
 from tambridge.images import sharpness
 from tambridge.io.tum import Frame, RgbdSequence
 
 Prepared = TypeVar("Prepared")
+Item = TypeVar("Item")
+Read = TypeVar("Read")
 
 
 class FramePrefetcher(Generic[Prepared]):
@@ -81,6 +84,42 @@ class FramePrefetcher(Generic[Prepared]):
                 executor.shutdown(wait=True, cancel_futures=True)
 
     def __enter__(self) -> "FramePrefetcher[Prepared]":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+
+class ReadAhead(Generic[Item, Read]):
+    """Iterate ``read(item)`` over ``items`` in their order, while the caller has one result the next ``ahead``
+    items being read in a worker thread (``ahead=0``: each read in the caller's thread when it is asked for). Each
+    result is exactly what ``read(item)`` gives; an error reading an item is raised when the caller reaches it.
+    Use it as a context manager, as :class:`FramePrefetcher`: leaving it cancels what was read ahead and waits for
+    the worker. At most ``ahead + 1`` results are held at a time, the caller's included."""
+
+    def __init__(self, items: Sequence[Item], read: Callable[[Item], Read], ahead: int = 2) -> None:
+        self.items = list(items)
+        self.read = read
+        self.ahead = ahead
+        self._reader = _worker("read-ahead") if ahead > 0 else None
+
+    def __iter__(self) -> Iterator[Read]:
+        if self._reader is None:
+            yield from (self.read(item) for item in self.items)
+            return
+        reads = collections.deque(self._reader.submit(self.read, item) for item in self.items[:self.ahead])
+        for index in range(len(self.items)):
+            # Queued before the caller gets item i: items i+1..i+ahead are read while the caller works on it.
+            if index + self.ahead < len(self.items):
+                reads.append(self._reader.submit(self.read, self.items[index + self.ahead]))
+            yield reads.popleft().result()
+
+    def close(self) -> None:
+        """Drop what was read ahead and wait for the worker to end (idempotent)."""
+        if self._reader is not None:
+            self._reader.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> "ReadAhead[Item, Read]":
         return self
 
     def __exit__(self, *exc_info) -> None:

@@ -41,6 +41,7 @@ from tambridge.gaussians.config import ExposureAnchor, MapperConfig
 from tambridge.gaussians.mapper import GaussianMap, ViewExposure, ViewImages, backproject, fit_exposure
 from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.geometry import inverse, transform_points
+from tambridge.io.prefetch import ReadAhead
 from tambridge.io.tum import Frame, RgbdSequence
 from tambridge.runlog import RunLog
 from tambridge.trajectory import Trajectory
@@ -208,8 +209,9 @@ class MappingStage:
         view's render at the mapping resolution against its frame, over the pixels the map covers (silhouette at
         least ``mapper.densify_silhouette``) where the colour has data. After a pass against the frames as recorded
         the map's colours are the frames' own, and exposures fitted before it to other colours would render every
-        view, and every frame anchored at it, through a stale transform. A view the fit cannot explain keeps its
-        exposure. Returns how many were refitted; nothing without exposures."""
+        view, and every frame anchored at it, through a stale transform; so a view the fit cannot explain (too few
+        covered pixels, no positive gain) takes the identity, the frames' own colours. Returns how many were
+        fitted; nothing without exposures."""
         if not self.has_exposures:
             return 0
         refitted = 0
@@ -220,9 +222,12 @@ class MappingStage:
             if images.colour_valid is not None:
                 covered &= images.colour_valid
             fitted = fit_exposure(rendered.rgb, images.rgb, covered)
-            if fitted is not None:
-                view.exposure.reset(fitted)
+            if fitted is None:
+                logger.warning("view %d (frame %d): no exposure fits the map's render (%d covered pixels): "
+                               "rendered in the map's own colours", view.keyframe_id, view.frame_index, int(covered.sum()))
+            else:
                 refitted += 1
+            view.exposure.reset(torch.zeros_like(view.exposure.parameters) if fitted is None else fitted)
         return refitted
 
     @staticmethod
@@ -533,36 +538,41 @@ class MappingStage:
         cameras = {kind: self.sequence.camera.scaled(scale) for kind, scale in scales.items()}
         added = 0
         start, end = config.sharp_lr_scale_start, config.sharp_lr_scale_end
+        def read(item: MappingView | FrameBetween) -> ViewImages:
+            return resize_frame(self.sequence[item.frame_index], scales[type(item)], self.device, self.sequence.valid_region)
+
         for round_index in range(config.sharp_iterations_per_view):
             chunks = self.view_chunks()
             if frames_between:
                 chunks += shuffled_chunks(list(frames_between), config.window_size, self._rng)
                 chunks = [chunks[index] for index in self._rng.permutation(len(chunks))]
-            for chunk_index, chunk in enumerate(chunks):
-                # Linear in the pass's progress, chunk by chunk, from sharp_lr_scale_start towards sharp_lr_scale_end.
-                progress = (round_index + chunk_index / len(chunks)) / config.sharp_iterations_per_view
-                learning_rate_scale = start + (end - start) * progress
-                kind = type(chunk[0])
-                camera = cameras[kind]
-                # Frames are read again each round: holding every view at this resolution would not be bounded.
-                posed, exposure_views = [], []
-                for item in chunk:
-                    images = resize_frame(self.sequence[item.frame_index], scales[kind], self.device,
-                                          self.sequence.valid_region)
-                    if kind is FrameBetween:
-                        poses = self.poses_over_exposure(item.world_from_camera, item.exposure_path, camera, images.depth_m)
-                        exposure_views.append(item.view)
-                    else:
-                        poses = self.view_poses(item, camera, images.depth_m)
-                        exposure_views.append(item)
-                        if round_index == 0:
-                            added += self.map.densify_colour_error(
-                                item.keyframe_id, camera, images, item.exposure if config.sharp_through_exposures else None,
-                                config.sharp_densify_error, config.sharp_densify_fraction, poses if poses.ndim == 3 else None)
-                    posed.append((poses, images))
-                self.map.optimise(camera, posed, list(range(len(chunk))),
-                                  self.exposures(exposure_views) if config.sharp_through_exposures else None,
-                                  learning_rate_scale, config.sharp_w_colour_squared)
+            # Frames are read again each round, a few ahead in a worker thread (decoding and colour registration
+            # overlap the steps): holding every view at this resolution would not be bounded.
+            with ReadAhead([item for chunk in chunks for item in chunk], read) as reading:
+                frames_read = iter(reading)
+                for chunk_index, chunk in enumerate(chunks):
+                    # Linear in the pass's progress, chunk by chunk, from sharp_lr_scale_start towards sharp_lr_scale_end.
+                    progress = (round_index + chunk_index / len(chunks)) / config.sharp_iterations_per_view
+                    learning_rate_scale = start + (end - start) * progress
+                    kind = type(chunk[0])
+                    camera = cameras[kind]
+                    posed, exposure_views = [], []
+                    for item in chunk:
+                        images = next(frames_read)
+                        if kind is FrameBetween:
+                            poses = self.poses_over_exposure(item.world_from_camera, item.exposure_path, camera, images.depth_m)
+                            exposure_views.append(item.view)
+                        else:
+                            poses = self.view_poses(item, camera, images.depth_m)
+                            exposure_views.append(item)
+                            if round_index == 0:
+                                added += self.map.densify_colour_error(
+                                    item.keyframe_id, camera, images, item.exposure if config.sharp_through_exposures else None,
+                                    config.sharp_densify_error, config.sharp_densify_fraction, poses if poses.ndim == 3 else None)
+                        posed.append((poses, images))
+                    self.map.optimise(camera, posed, list(range(len(chunk))),
+                                      self.exposures(exposure_views) if config.sharp_through_exposures else None,
+                                      learning_rate_scale, config.sharp_w_colour_squared)
         logger.info("sharpening at %dx%d: %d steps per view over %d views and %d frames between them (at %dx%d), "
                     "+%d Gaussians -> %d", cameras[MappingView].width, cameras[MappingView].height,
                     config.sharp_iterations_per_view, len(self.views), len(frames_between), cameras[FrameBetween].width,
