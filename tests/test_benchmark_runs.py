@@ -67,3 +67,16 @@ def test_ssim_benchmark_times_the_kernel_and_its_twin_and_finds_them_equal(tmp_p
     assert [row["resolution"] for row in rows] == ["40x30", "64x48"]
     assert all(row["kernel_ms"] > 0 and row["twin_ms"] > 0 for row in rows)
     assert all(row["value_difference"] < 1e-6 and row["gradient_difference_relative"] < 1e-5 for row in rows)
+
+
+def test_adam_benchmark_times_the_kernel_and_its_twin_and_finds_them_equal(tmp_path):
+    output = tmp_path / "adam.json"
+    child = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "adam.py"), "--counts", "300", "1000",
+                            "--repeats", "2", "--output", str(output)], cwd=ROOT, capture_output=True, text=True,
+                           timeout=300)
+    assert child.returncode == 0, child.stderr[-3000:]
+    rows = json.loads(output.read_text())["rows"]
+    assert [row["gaussians"] for row in rows] == [300, 1000]
+    assert all(row["kernel_ms"] > 0 and row["twin_ms"] > 0 for row in rows)
+    # Float32 rounding of the twin's bias corrections, against steps of the size of the learning rates.
+    assert all(row["parameter_difference_relative"] < 1e-3 for row in rows)

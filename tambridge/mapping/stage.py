@@ -538,6 +538,7 @@ class MappingStage:
         cameras = {kind: self.sequence.camera.scaled(scale) for kind, scale in scales.items()}
         added = 0
         start, end = config.sharp_lr_scale_start, config.sharp_lr_scale_end
+
         def read(item: MappingView | FrameBetween) -> ViewImages:
             return resize_frame(self.sequence[item.frame_index], scales[type(item)], self.device, self.sequence.valid_region)
 
