@@ -16,11 +16,7 @@ The table goes to stdout, everything to benchmarks/results/adam.json.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
-import statistics
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,11 +24,10 @@ sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 
-from benchmarks.machine import describe_machine  # noqa: E402
+from benchmarks.kernel_twin import mapper_threads, median_ms, write_result  # noqa: E402
 from tambridge.gaussians.adam_kernel import adam_step_numba  # noqa: E402
 from tambridge.gaussians.config import MapperConfig  # noqa: E402
 from tambridge.gaussians.mapper import ADAM_BETAS, ADAM_EPS, GaussianMap, adam_step_torch  # noqa: E402
-from tambridge.threads import TORCH_THREADS, compute_threads  # noqa: E402
 
 SHAPES = {"means_anchor_m": (3,), "rgb": (3,), "log_radii_m": (), "opacity_logits": ()}
 
@@ -55,15 +50,14 @@ def copied(table: dict) -> dict:
 
 
 def timed_ms(step, count: int, repeats: int, learning_rates: dict) -> float:
-    """Median wall milliseconds of one ``step`` on ``count`` Gaussians."""
+    """Median wall milliseconds of one ``step`` on ``count`` Gaussians, each step from the state the last one left."""
     params, grads, exp_avg, exp_avg_sq, steps = state(count, torch.Generator().manual_seed(0))
-    times = []
-    for attempt in range(repeats + 2):
-        start = time.perf_counter()
-        steps = step(params, grads, exp_avg, exp_avg_sq, steps, learning_rates, ADAM_BETAS, ADAM_EPS)
-        if attempt >= 2:  # two warm-ups: numba's compilation or cache load, torch's first allocation
-            times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
+    counts = [steps]
+
+    def one_step() -> None:
+        counts[0] = step(params, grads, exp_avg, exp_avg_sq, counts[0], learning_rates, ADAM_BETAS, ADAM_EPS)
+
+    return median_ms(one_step, repeats)
 
 
 def measure(count: int, repeats: int) -> dict:
@@ -90,18 +84,13 @@ def main() -> None:
     args = parser.parse_args()
     if any(count <= 0 for count in args.counts):
         raise SystemExit(f"--counts: {args.counts} must all be positive numbers of Gaussians, e.g. 60000")
-    threads = MapperConfig().kernel_threads
-    with compute_threads(TORCH_THREADS, threads):
+    with mapper_threads() as threads:
         rows = [measure(count, args.repeats) for count in args.counts]
     print(f"{'Gaussians':>10} {'kernel ms':>10} {'twin ms':>9} {'ratio':>6} {'param diff':>11}")
     for row in rows:
         print(f"{row['gaussians']:10d} {row['kernel_ms']:10.2f} {row['twin_ms']:9.2f} {row['twin_over_kernel']:6.2f} "
               f"{row['parameter_difference_relative']:11.2e}")
-    result = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "machine": describe_machine(), "torch_threads": TORCH_THREADS, "numba_threads": threads,
-              "repeats": args.repeats, "rows": rows}
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=1) + "\n")
+    write_result(args.output, threads, args.repeats, rows)
 
 
 if __name__ == "__main__":

@@ -15,11 +15,7 @@ The table goes to stdout, everything to benchmarks/results/ssim.json.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
-import statistics
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,22 +23,14 @@ sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 
-from benchmarks.machine import describe_machine  # noqa: E402
-from tambridge.gaussians.config import MapperConfig  # noqa: E402
+from benchmarks.kernel_twin import mapper_threads, median_ms, write_result  # noqa: E402
 from tambridge.gaussians.losses import ssim, ssim_reference  # noqa: E402
-from tambridge.threads import TORCH_THREADS, compute_threads  # noqa: E402
 
 
 def timed_ms(function, rendered: torch.Tensor, observed: torch.Tensor, repeats: int) -> float:
     """Median wall milliseconds of one forward and backward pass of ``function(rendered, observed)``."""
-    times = []
-    for attempt in range(repeats + 2):
-        leaf = rendered.detach().requires_grad_(True)
-        start = time.perf_counter()
-        function(leaf, observed).backward()
-        if attempt >= 2:  # two warm-ups: numba's compilation or cache load, torch's first allocation
-            times.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(times)
+    return median_ms(lambda leaf: function(leaf, observed).backward(), repeats,
+                     prepare=lambda: rendered.detach().requires_grad_(True))
 
 
 def kernel_and_twin(rendered: torch.Tensor, observed: torch.Tensor) -> tuple[list[float], list[torch.Tensor]]:
@@ -83,18 +71,13 @@ def main() -> None:
         except ValueError:
             raise SystemExit(f"--resolutions: {text!r} is not WIDTHxHEIGHT, e.g. 640x480") from None
         sizes.append((width, height))
-    threads = MapperConfig().kernel_threads
-    with compute_threads(TORCH_THREADS, threads):
+    with mapper_threads() as threads:
         rows = [measure(width, height, args.repeats) for width, height in sizes]
     print(f"{'resolution':>10} {'kernel ms':>10} {'twin ms':>9} {'ratio':>6} {'value diff':>11} {'grad diff':>10}")
     for row in rows:
         print(f"{row['resolution']:>10} {row['kernel_ms']:10.2f} {row['twin_ms']:9.2f} {row['twin_over_kernel']:6.2f} "
               f"{row['value_difference']:11.2e} {row['gradient_difference_relative']:10.2e}")
-    result = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-              "machine": describe_machine(), "torch_threads": TORCH_THREADS, "numba_threads": threads,
-              "repeats": args.repeats, "rows": rows}
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(result, indent=1) + "\n")
+    write_result(args.output, threads, args.repeats, rows)
 
 
 if __name__ == "__main__":

@@ -57,25 +57,24 @@ def test_sharp_splats_scores_the_map_before_and_after_the_pass_its_ceiling_and_l
     assert abs(limits["psnr_pose"] - limits["psnr_exp"]) < 1.0 and 0 <= limits["pose_moved_mm"] < 50
 
 
-def test_ssim_benchmark_times_the_kernel_and_its_twin_and_finds_them_equal(tmp_path):
-    output = tmp_path / "ssim.json"
-    child = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "ssim.py"), "--resolutions", "40x30", "64x48",
-                            "--repeats", "2", "--output", str(output)], cwd=ROOT, capture_output=True, text=True,
-                           timeout=300)
+def kernel_benchmark_rows(script: str, arguments: list[str], tmp_path: Path) -> list[dict]:
+    """The rows a kernel-against-twin benchmark (``benchmarks/SCRIPT``) writes with ``arguments`` and two repeats."""
+    output = tmp_path / "result.json"
+    child = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *arguments, "--repeats", "2",
+                            "--output", str(output)], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert child.returncode == 0, child.stderr[-3000:]
-    rows = json.loads(output.read_text())["rows"]
+    return json.loads(output.read_text())["rows"]
+
+
+def test_ssim_benchmark_times_the_kernel_and_its_twin_and_finds_them_equal(tmp_path):
+    rows = kernel_benchmark_rows("ssim.py", ["--resolutions", "40x30", "64x48"], tmp_path)
     assert [row["resolution"] for row in rows] == ["40x30", "64x48"]
     assert all(row["kernel_ms"] > 0 and row["twin_ms"] > 0 for row in rows)
     assert all(row["value_difference"] < 1e-6 and row["gradient_difference_relative"] < 1e-5 for row in rows)
 
 
 def test_adam_benchmark_times_the_kernel_and_its_twin_and_finds_them_equal(tmp_path):
-    output = tmp_path / "adam.json"
-    child = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "adam.py"), "--counts", "300", "1000",
-                            "--repeats", "2", "--output", str(output)], cwd=ROOT, capture_output=True, text=True,
-                           timeout=300)
-    assert child.returncode == 0, child.stderr[-3000:]
-    rows = json.loads(output.read_text())["rows"]
+    rows = kernel_benchmark_rows("adam.py", ["--counts", "300", "1000"], tmp_path)
     assert [row["gaussians"] for row in rows] == [300, 1000]
     assert all(row["kernel_ms"] > 0 and row["twin_ms"] > 0 for row in rows)
     # Float32 rounding of the twin's bias corrections, against steps of the size of the learning rates.

@@ -136,9 +136,7 @@ def test_visible_rows_over_several_poses_are_the_union_of_each_poses_and_all_a_r
     # The Gaussians a pose does not see change nothing in its render.
     everything = gaussian_map.gaussians()
     for pose, rows in zip(poses, each):
-        rows = torch.tensor(sorted(rows))
-        seen = type(everything)(*(getattr(everything, field)[rows] for field in ("means_m", "rgb", "log_radii_m",
-                                                                                 "opacity_logits")))
+        seen = gaussian_map.gaussians(rows=torch.tensor(sorted(rows)))
         full, only = (render_gaussians(gaussians, camera, pose) for gaussians in (everything, seen))
         torch.testing.assert_close(only.rgb, full.rgb, atol=1e-6, rtol=0)
         torch.testing.assert_close(only.depth_m, full.depth_m, atol=1e-6, rtol=0)
@@ -597,7 +595,8 @@ def test_the_numba_adam_step_is_the_torch_steps_twin():
     assert torch.equal(counts[0][:100], steps[:100]) and torch.equal(counts[0][100:], steps[100:] + 3)
     for fast, slow in zip(*copies):
         for name in shapes:
-            # The torch step's float32 ``1 - beta2 ** t`` loses up to 3e-5 of its value at small t; the kernel's is float64.
+            # The torch step's float32 ``1 - beta2 ** t`` loses up to 3e-5 of its value at small t; the kernel's is
+            # float64.
             torch.testing.assert_close(fast[name], slow[name], atol=1e-5, rtol=1e-4)
     assert all(torch.equal(copies[0][0][name][:100], params[name][:100]) for name in shapes)
     assert copies[0][0]["rgb"].min() == 0.0 and copies[0][0]["rgb"].max() == 1.0

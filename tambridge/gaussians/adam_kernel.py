@@ -14,6 +14,8 @@ import numba
 import numpy as np
 import torch
 
+from tambridge.gaussians.model import FIELDS
+
 
 @numba.njit(cache=True, inline="always")
 def _has_gradient(row, grad):
@@ -53,13 +55,9 @@ def _adam(means, rgb, log_radii, opacity, grad_means, grad_rgb, grad_log_radii, 
                         learning_rates[2] * inverse_correction1, root_correction, eps)
             _step_field(row, opacity, grad_opacity, avg_opacity, sq_opacity, beta1, beta2,
                         learning_rates[3] * inverse_correction1, root_correction, eps)
-        # Colours are kept in the displayable range (every row, as the torch step clamps).
+        # Colours (the second of model.FIELDS) are kept in the displayable range (every row, as the torch step clamps).
         for column in range(3):
             rgb[row, column] = min(max(rgb[row, column], 0.0), 1.0)
-
-
-FIELD_ORDER = ("means_anchor_m", "rgb", "log_radii_m", "opacity_logits")
-"""The kernel's argument order of the map's fields; ``rgb`` second (the field it clamps)."""
 
 
 def _columns(tensor: torch.Tensor) -> np.ndarray:
@@ -73,8 +71,8 @@ def adam_step_numba(params: dict, grads: dict, exp_avg: dict, exp_avg_sq: dict, 
     contiguous): one Adam step on every Gaussian with a nonzero gradient in some field of ``grads``, at
     ``learning_rates`` by field; the others keep their parameters and moments. Returns the new step counts (M,)."""
     steps = steps.clone()
-    arrays = [_columns(table[name]) for table in (params, grads, exp_avg, exp_avg_sq) for name in FIELD_ORDER]
-    rates = np.array([learning_rates[name] for name in FIELD_ORDER], np.float64)
+    arrays = [_columns(table[name]) for table in (params, grads, exp_avg, exp_avg_sq) for name in FIELDS]
+    rates = np.array([learning_rates[name] for name in FIELDS], np.float64)
     # The bias corrections by step count, looked up: two powers per Gaussian cost more than the rest of its step.
     counts = np.arange(int(steps.max()) + 2 if len(steps) else 1, dtype=np.float64)
     with np.errstate(divide="ignore"):

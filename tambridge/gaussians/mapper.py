@@ -25,6 +25,7 @@ from tambridge.state import attribute_state, restore_attributes
 from tambridge.gaussians.adam_kernel import adam_step_numba
 from tambridge.gaussians.losses import map_loss
 from tambridge.gaussians.model import (
+    FIELDS,
     NEAR_PLANE_M,
     GaussianTensors,
     RenderOutput,
@@ -35,7 +36,6 @@ from tambridge.gaussians.rasterizer import render
 
 SILHOUETTE_FLOOR = 1e-6
 """Silhouettes below this count as nothing rendered."""
-FIELDS = ("means_anchor_m", "rgb", "log_radii_m", "opacity_logits")
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-15  # 3DGS's value: radii and opacities get tiny gradients that a larger eps would swamp
 MIN_EXPOSURE_FIT_PIXELS = 64

@@ -50,6 +50,11 @@ TRANSMITTANCE_MIN = 1e-4
 """Compositing stops before a Gaussian that would bring the transmittance below this."""
 
 
+FIELDS = ("means_anchor_m", "rgb", "log_radii_m", "opacity_logits")
+"""The fields :class:`tambridge.gaussians.mapper.GaussianMap` stores and optimises per Gaussian (the mean in its
+anchor view's camera frame), in the order its Adam kernel takes them."""
+
+
 @dataclasses.dataclass
 class GaussianTensors:
     """Activated parameters of N isotropic Gaussians, all torch tensors on one device and of one float dtype.
