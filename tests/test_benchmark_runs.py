@@ -79,3 +79,28 @@ def test_adam_benchmark_times_the_kernel_and_its_twin_and_finds_them_equal(tmp_p
     assert all(row["kernel_ms"] > 0 and row["twin_ms"] > 0 for row in rows)
     # Float32 rounding of the twin's bias corrections, against steps of the size of the learning rates.
     assert all(row["parameter_difference_relative"] < 1e-3 for row in rows)
+
+
+def test_turns_benchmark_tracks_a_segment_as_a_sequence_of_its_own(synthetic_sequence_dir, tmp_path):
+    """``benchmarks/turns.py`` on frames 5-24 of the synthetic loop: the segment folder holds those frames and the
+    ground truth of their span, and the run scores them; Sim(3) has one more degree of freedom than SE(3), so its
+    least-squares ATE is never the larger."""
+    from benchmarks.turns import data_lines, write_segment
+
+    segment = write_segment(synthetic_sequence_dir, 5, 25, tmp_path / "segment")
+    rgb = data_lines(segment / "rgb.txt")[1]
+    source = data_lines(synthetic_sequence_dir / "rgb.txt")[1][5:25]
+    assert [row.split()[1] for row in rgb] == [row.split()[1] for row in source]
+    assert all((segment / row.split()[1]).is_file() for row in rgb)
+    truth_stamps = [float(row.split()[0]) for row in data_lines(segment / "groundtruth.txt")[1]]
+    assert truth_stamps[0] >= float(rgb[0].split()[0]) - 0.02 and truth_stamps[-1] <= float(rgb[-1].split()[0]) + 0.02
+    output = tmp_path / "turns.json"
+    child = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "turns.py"), "--sequence",
+                            str(synthetic_sequence_dir), "--segments", "5-25", "--methods", "orb", "--work",
+                            str(tmp_path / "work"), "--output", str(output)],
+                           cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert child.returncode == 0, child.stderr[-3000:]
+    [row] = json.loads(output.read_text())["rows"]
+    assert (row["segment"], row["method"], row["poses"]) == ("5-25", "orb", 20)
+    assert row["ate_sim3_cm"] <= row["ate_se3_cm"] + 1e-9 and row["ate_se3_cm"] < 3.0
+    assert 0.9 < row["scale"] < 1.1
