@@ -233,10 +233,8 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
     sharpen = MappingStage.sharpen
 
     def keeping_the_map(stage: MappingStage, frames_between=()) -> None:
-        before["map"] = copy.deepcopy(stage.map.state_dict())
-        before["exposures"] = [None if v.exposure is None else copy.deepcopy(v.exposure.state_dict()) for v in stage.views]
+        before["stage"] = copy.deepcopy(stage.state_dict())
         before["frames_between"] = list(frames_between)
-        before["rng"] = copy.deepcopy(stage._rng.bit_generator.state)
         sharpen(stage, frames_between)
 
     mapping_metrics = pipeline.mapping_metrics
@@ -277,7 +275,7 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
     if "off" in rows:
         rows["off"].update(seconds=metrics.seconds_total - sharpening_s,
                            fps=metrics.frames / (metrics.seconds_total - sharpening_s))
-    return {"sequence": sequence.name, "preset": preset, "frames": metrics.frames, "mapping_views": len(before["exposures"]) if before else None,
+    return {"sequence": sequence.name, "preset": preset, "frames": metrics.frames, "mapping_views": len(before["stage"]["views"]) if before else None,
             "frames_between": len(before["frames_between"]) if before else None,
             "wall_seconds_process": wall, "sharpening_seconds": sharpening_s,
             "seconds_per_stage": metrics.seconds_per_stage, "peak_memory_mb": metrics.peak_memory_mb,
@@ -285,13 +283,9 @@ def child_case(sequence: Path, preset: str, frames: int, out: Path, extra: list[
 
 
 def restore_before_the_pass(mapping, before: dict) -> None:
-    """The map, the views' exposures and the random generator as they were when the pass began."""
-    from tambridge.gaussians.mapper import ViewExposure
-
-    mapping.map.load_state_dict(copy.deepcopy(before["map"]))
-    for view, exposure in zip(mapping.views, before["exposures"]):
-        view.exposure = None if exposure is None else ViewExposure.from_state_dict(copy.deepcopy(exposure))
-    mapping._rng.bit_generator.state = copy.deepcopy(before["rng"])
+    """The stage as it was when the pass began (its map, the views' exposures, the random generator): its own
+    checkpoint state, kept then."""
+    mapping.load_state_dict(copy.deepcopy(before["stage"]))
 
 
 def variant_scores(mapping, before: dict, mapper_config, poses: np.ndarray, frames: list[int]) -> dict:
