@@ -7,7 +7,9 @@ segments: ATE, RPE, the largest error, tracking frames/s, and the term's own cos
 
 ``--strides``: each segment also with every n-th frame only, the camera n times as fast (real motion, real
 images, no added blur): a real-data stand-in for fast rotation, and a run through the lost-frame and
-relocalisation paths where tracking breaks.
+relocalisation paths where tracking breaks. ``--exposure-frames N`` (odd) adds the blur of a longer exposure: each
+tracked frame's colour is the mean of the N recorded frames centred on it (blurred along the camera's real
+motion, N/30 s at 30 frames/s), its depth and stamps its own.
 
 Tracking only (the ORB frontend with the default settings: loop closure, global BA, mapping thread), no
 Gaussian mapping. frames/s counts the time inside ``track`` and ``finish``; under shared CPUs compare the modes'
@@ -23,6 +25,7 @@ benchmarks/results/dense_tracking.json.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -205,8 +208,20 @@ def depth_fit(frames, sequence, estimate, gap: int = 1, step: int = 10) -> dict:
             "ground_truth_to_depth_optimum_rms_mm": float(np.sqrt(np.mean(np.square(truth_gap))))}
 
 
+def longer_exposure(frames: list, index: int, count: int):
+    """Frame ``index`` of ``frames`` with its colour the mean of the ``count`` (odd) consecutive frames centred on it
+    (fewer at the ends): a longer exposure, blurred along the camera's real motion; its depth and stamps its own."""
+    if count == 1:
+        return frames[index]
+    half = count // 2
+    window = frames[max(0, index - half) : index + half + 1]
+    rgb = np.mean([frame.rgb.astype(np.float32) for frame in window], axis=0)
+    return dataclasses.replace(frames[index], rgb=np.clip(np.rint(rgb), 0, 255).astype(np.uint8))
+
+
 def format_table(rows: list[dict]) -> str:
-    columns = [("segment", "segment", "{}"), ("stride", "stride", "{}"), ("dense_depth", "mode", "{}"), ("frames", "frames", "{}"),
+    columns = [("segment", "segment", "{}"), ("stride", "stride", "{}"), ("exposure frames", "exposure_frames", "{}"),
+               ("dense_depth", "mode", "{}"), ("frames", "frames", "{}"),
                ("ATE cm", "ate_cm", "{:.2f}"), ("max cm", "max_cm", "{:.2f}"), ("RPE cm/frame", "rpe_cm", "{:.3f}"),
                ("RPE deg/frame", "rpe_deg", "{:.3f}"), ("frames/s", "fps", "{:.1f}"),
                ("tracking CPU ms/frame", "tracking_thread_cpu_ms", "{:.1f}"),
@@ -227,6 +242,8 @@ def main() -> None:
     parser.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES)
     parser.add_argument("--strides", nargs="*", type=int, default=[1], metavar="N",
                         help="also track every N-th frame only (the camera N times as fast); default 1")
+    parser.add_argument("--exposure-frames", type=int, default=1, metavar="N",
+                        help="each tracked frame's colour the mean of N (odd) consecutive frames: a longer exposure")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="OrbFrontendConfig overrides")
     parser.add_argument("--trajectories", type=Path, help="write each run's trajectory here (SEGMENT_MODE.txt)")
     parser.add_argument("--limits", action="store_true", help="also scan clock offsets against the ground truth and "
@@ -235,6 +252,8 @@ def main() -> None:
     args = parser.parse_args()
     if any(stride < 1 for stride in args.strides):
         parser.error(f"--strides {' '.join(map(str, args.strides))}: each must be 1 or more")
+    if args.exposure_frames < 1 or args.exposure_frames % 2 == 0:
+        parser.error(f"--exposure-frames {args.exposure_frames}: give an odd count, 1 or more")
     configs = {mode: orb_config([f"dense_depth={mode}", *args.set]) for mode in args.modes}
     segments = {name: SEGMENTS[name] for name in args.segments}
     if args.trajectories is not None:
@@ -248,10 +267,13 @@ def main() -> None:
         costs[name] = term_cost(frames, sequence)
         for stride in args.strides:
             for mode in args.modes:
-                suffix = "" if stride == 1 else f"_stride{stride}"
+                suffix = ("" if stride == 1 else f"_stride{stride}") + \
+                    ("" if args.exposure_frames == 1 else f"_exposure{args.exposure_frames}")
                 path = None if args.trajectories is None else args.trajectories / f"{name}_{mode}{suffix}.txt"
-                trajectory, row = track_segment(frames[::stride], sequence, configs[mode], path)
-                row = {"segment": name, "stride": stride, **row, "load_1min": os.getloadavg()[0]}
+                used = [longer_exposure(frames, index, args.exposure_frames) for index in range(0, len(frames), stride)]
+                trajectory, row = track_segment(used, sequence, configs[mode], path)
+                row = {"segment": name, "stride": stride, "exposure_frames": args.exposure_frames, **row,
+                       "load_1min": os.getloadavg()[0]}
                 print(format_table([row]).splitlines()[-1], flush=True)
                 rows.append(row)
         if args.limits:

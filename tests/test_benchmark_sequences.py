@@ -1,13 +1,15 @@
-"""The benchmarks' sequence lookup (--data folders, a one-line message for a missing one), their row merging, and
-benchmarks/loops.py's ground-truth revisits."""
+"""The benchmarks' sequence lookup (--data folders, a one-line message for a missing one), their row merging,
+benchmarks/loops.py's ground-truth revisits and benchmarks/dense_tracking.py's longer exposures."""
 
 import numpy as np
 import pytest
 
+from benchmarks.dense_tracking import longer_exposure
 from benchmarks.loops import relative_drift_m, revisits
 from benchmarks.run_all import sequence_order
 from benchmarks.sequences import FR1_XYZ, MissingSequence, find_sequence, merge_rows
 from tambridge.geometry import exp_se3
+from tambridge.io.tum import Frame
 
 
 def _sequence(folder):
@@ -57,3 +59,18 @@ def test_revisits_are_pairs_far_apart_in_time_near_in_pose():
     estimate = poses.copy()
     estimate[5, 0, 3] += 0.03
     assert relative_drift_m(estimate, poses, 5, 0) == pytest.approx(0.03)
+
+
+def test_a_longer_exposure_is_the_mean_of_the_frames_around_one_with_its_own_depth_and_stamps():
+    frames = [Frame(index, 0.1 * index, np.full((2, 3, 3), 10 * index, np.uint8),
+                    np.full((2, 3), 1.0 + index, np.float32), 0.1 * index + 0.01) for index in range(5)]
+    frames[2].rgb[0, 0] = (21, 0, 255)
+    blurred = longer_exposure(frames, 2, 3)
+    expected = np.full((2, 3, 3), 20, np.uint8)
+    expected[0, 0] = (20, 13, 98)  # (10 + 21 + 30) / 3, (10 + 0 + 30) / 3 and (10 + 255 + 30) / 3, rounded
+    np.testing.assert_array_equal(blurred.rgb, expected)
+    assert (blurred.index, blurred.timestamp_s, blurred.depth_delay_s) == (2, frames[2].timestamp_s, frames[2].depth_delay_s)
+    assert blurred.depth_m is frames[2].depth_m
+    # At the ends the window is cut: frame 0 takes frames 0 and 1.
+    np.testing.assert_array_equal(longer_exposure(frames, 0, 3).rgb, np.full((2, 3, 3), 5, np.uint8))
+    assert longer_exposure(frames, 4, 1) is frames[4]
