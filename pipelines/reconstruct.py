@@ -345,6 +345,7 @@ def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResul
         frontend=config.frontend.kind,
         frames_lost=tracking.frames_lost,
         frames_relocalised=tracking.frames_relocalised,
+        frames_tracked_by_depth=tracking.frames_tracked_by_depth,
         frames_without_depth=len(counters.frames_without_depth),
         loops_closed=tracking.loops_closed,
         keyframes_culled=tracking.keyframes_culled,

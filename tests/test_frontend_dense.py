@@ -10,6 +10,7 @@ from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.frontend.orb.config import OrbFrontendConfig
 from tambridge.frontend.orb.dense_depth import (
     DenseTerm,
+    align_depth,
     dense_jacobian_reference,
     dense_normal_equations,
     dense_normal_equations_reference,
@@ -71,6 +72,21 @@ def test_reference_normals_are_unit_and_face_the_camera(views):
     assert has.mean() > 0.8
     assert np.allclose(np.linalg.norm(reference.normals[has], axis=1), 1.0)
     assert np.all(np.einsum("ij,ij->i", reference.normals[has], reference.points_camera_m[has]) < 0)
+
+
+def test_depth_alone_recovers_a_motion_the_surface_holds_and_reports_a_plane_as_unheld(views):
+    """Projective ICP from the reference's own pose (the motion unknown: 4 cm and 2 degrees) lands on the current
+    view's pose; a flat wall facing the camera leaves three motions free, which the conditioning shows."""
+    world_from_reference, _, world_from_current, _ = views
+    alignment = align_depth(inverse(world_from_reference), make_term(views))
+    error = alignment.camera_from_world @ world_from_current
+    assert np.linalg.norm(error[:3, 3]) < 0.002 and np.degrees(np.arccos((np.trace(error[:3, :3]) - 1) / 2)) < 0.1
+    assert alignment.associated_share > 0.8 and alignment.conditioning > 1e-3
+    wall = np.full((CAMERA.height, CAMERA.width), 1.5, np.float32)
+    flat = DenseTerm(dense_reference(0, wall, CAMERA.K, 1, 0.1, 8.0), np.eye(4), dense_samples(wall, CAMERA.K, 2, 0.1, 8.0),
+                     CAMERA.K, 100.0, 0.0025, 2.0, 0.05)
+    on_wall = align_depth(np.eye(4), flat)
+    assert on_wall.associated_share > 0.9 and on_wall.conditioning < 1e-6
 
 
 def test_kernel_matches_its_twin(views):

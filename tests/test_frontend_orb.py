@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from tambridge.evaluation.trajectory import ate_rmse_m
+from tambridge.evaluation.trajectory import ate_rmse_m, evaluate_trajectory
 from tambridge.frontend.orb.frontend import OrbFrontend
 from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, scaled_for_image
 from tambridge.geometry import inverse, look_at
@@ -104,6 +104,27 @@ def test_blank_frame_is_reported_and_tracking_continues(sequence, caplog):
     keep = np.flatnonzero(final.tracked)
     estimate = Trajectory(final.trajectory.timestamps_s[keep], final.trajectory.world_from_camera[keep])
     assert ate_rmse_m(estimate, sequence.ground_truth) < 0.03
+
+
+@pytest.mark.parametrize("depth_only", [True, False], ids=["depth-only-tracking", "without"])
+def test_frames_without_colour_are_tracked_by_their_depth(sequence, depth_only):
+    """Frames 12 and 13 black (a covered lens) with their depth kept: ORB finds nothing, so they are tracked by the
+    depth term alone against the last keyframe, close to the truth, and tracking goes on; without that they are
+    lost. (The loop turns 12 degrees a frame: a third frame keeps too little of its depth on the keyframe's surface,
+    under ``depth_only_min_share``, and is lost.)"""
+    frames = [sequence[i] for i in range(len(sequence))]
+    black = range(12, 14)
+    stream = [dataclasses.replace(frame, rgb=np.zeros_like(frame.rgb)) if frame.index in black else frame for frame in frames]
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False,
+                                                              depth_only_tracking=depth_only))
+    results = [frontend.track(frame) for frame in stream]
+    final = frontend.finish()
+    assert [r.tracked for r in results[12:14]] == [depth_only] * 2 and all(r.tracked for r in results[14:])
+    assert not any(r.is_keyframe for r in results[12:14])
+    assert (final.frames_tracked_by_depth, final.frames_lost) == ((2, 0) if depth_only else (0, 2))
+    if depth_only:
+        errors = evaluate_trajectory(final.trajectory, sequence.ground_truth).ate_errors_m
+        assert np.max(errors[12:14]) < 0.02 and np.sqrt(np.mean(errors ** 2)) < 0.02
 
 
 def test_a_kidnapped_camera_is_relocalised_and_tracked_on(sequence):

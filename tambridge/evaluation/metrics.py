@@ -182,6 +182,7 @@ class RunMetrics:
     frontend: str
     frames_lost: int
     frames_relocalised: int
+    frames_tracked_by_depth: int = 0
     frames_without_depth: int
     loops_closed: int
     keyframes_culled: int

@@ -88,6 +88,16 @@ class OrbFrontendConfig:
                                                "matched ...", NON_NEGATIVE)
     dense_auto_min_rotation_deg: float = setting(2.0, "... or the motion prior turns by more than this per frame "
                                                       "(degrees; 2 = 60 deg/s at 30 frames/s)", NON_NEGATIVE)
+    # A frame ORB cannot place (blur, texture gone, a covered lens) often still has its depth; projective ICP from
+    # the motion prior recovers 1-5 cm of motion to about a centimetre on fr1/xyz (docs/benchmarks.md).
+    depth_only_tracking: bool = setting(True, "a frame that neither ORB tracking nor relocalisation can place is "
+                                              "tracked by the depth term alone against the last keyframe, where the "
+                                              "two bounds below hold (needs dense_depth other than never)")
+    depth_only_min_share: float = setting(0.6, "... the share of the frame's depth samples on the keyframe's surface "
+                                               "at the pose found, at least", UNIT)
+    depth_only_min_conditioning: float = setting(1e-3, "... and the smallest over the largest eigenvalue of the depth "
+                                                       "term's Gauss-Newton matrix there (a single plane leaves motions "
+                                                       "free: near 0)", NON_NEGATIVE)
     # Depth edges between consecutive keyframes in bundle adjustment lower ATE on fr1/xyz and 7-Scenes; heavier
     # than 1000 they cost 7-Scenes' fast turns and, past 3000, fr1/xyz (docs/benchmarks.md).
     ba_dense_depth: bool = setting(True, "bundle adjustment ties each keyframe to the previous one by the "

@@ -23,7 +23,7 @@ import numpy as np
 
 from tambridge.camera import pinhole, pinhole_numba, pinhole_ray
 from tambridge.frontend.orb.reprojection import MIN_DEPTH_M
-from tambridge.geometry import inverse, transform_points
+from tambridge.geometry import exp_se3, inverse, orthonormalised, transform_points
 
 # Neighbouring depths differing by more than this fraction of the depth are a depth edge: no normal there.
 EDGE_RATIO = 0.05
@@ -196,6 +196,38 @@ def dense_normal_equations(camera_from_world: np.ndarray, term: DenseTerm) -> tu
     """``(H (6, 6), g (6,), robust cost, associated samples)`` of the term at ``camera_from_world``, associations
     made at this pose; the update is ``delta = -H^-1 g`` (with any other term's system added)."""
     return dense_normal_equations_numba(np.ascontiguousarray(camera_from_world, np.float64), *kernel_arguments(term))
+
+
+@dataclasses.dataclass
+class DepthAlignment:
+    """The pose the depth term alone gives a frame (:func:`align_depth`): ``camera_from_world`` (4, 4);
+    ``associated_share``, the share of the frame's samples associated with the reference's surface there;
+    ``conditioning``, the smallest eigenvalue of the term's Gauss-Newton matrix over its largest (rotation in
+    radians, translation in metres): near 0 where the surface leaves a motion free, as a single plane leaves the
+    slide along it and the turn about its normal."""
+
+    camera_from_world: np.ndarray
+    associated_share: float
+    conditioning: float
+
+
+def align_depth(camera_from_world: np.ndarray, term: DenseTerm, iterations: int = 30) -> DepthAlignment:
+    """Gauss-Newton on the depth term alone from ``camera_from_world`` (4, 4), re-associating at every step, for at
+    most ``iterations`` steps (projective ICP against the reference keyframe's surface)."""
+    pose = np.array(camera_from_world, np.float64)
+    for _ in range(iterations):
+        hessian, gradient, _, _ = dense_normal_equations(pose, term)
+        try:
+            delta = -np.linalg.solve(hessian + 1e-9 * np.eye(6), gradient)
+        except np.linalg.LinAlgError:
+            break
+        pose = orthonormalised(exp_se3(delta) @ pose)
+        if np.linalg.norm(delta) < 1e-6:
+            break
+    hessian, _, _, associated = dense_normal_equations(pose, term)
+    eigenvalues = np.linalg.eigvalsh(hessian)
+    conditioning = float(eigenvalues[0] / eigenvalues[-1]) if eigenvalues[-1] > 0 else 0.0
+    return DepthAlignment(pose, associated / max(1, len(term.samples_camera_m)), max(0.0, conditioning))
 
 
 def dense_pair_normal_equations(camera_from_world: np.ndarray, reference_from_world: np.ndarray,

@@ -7,8 +7,9 @@ refinement with a Huber kernel from the prior (PnP-RANSAC only if the prior leav
 second, tighter projection search and refinement. Tracking a frame decides whether it becomes a keyframe
 (ORB-SLAM2's rules); a keyframe adds map points from its depth, culls bad recent points, fuses duplicates (points keep their most distinctive
 descriptor), runs local BA, and looks for a loop (bag of words, candidates consistent over consecutive
-keyframes, PnP verification, pose graph, point fusion). A lost frame tries
-relocalisation against the keyframes; failing that it is reported (warning) and, after a few failures, a new
+keyframes, PnP verification, pose graph, point fusion). A frame the local map cannot place tries
+relocalisation against the keyframes, then its depth alone against the last keyframe's surface
+(``depth_only_tracking``); failing both it is lost, reported (warning) and, after a few failures, a new
 map segment starts, to be joined to the old one by the next loop closure. ``finish()`` runs global BA and
 re-anchors every frame to its reference keyframe.
 
@@ -53,7 +54,7 @@ from tambridge.frontend.orb.local_mapping import (
 )
 from tambridge.frontend.orb.loop_closing import LoopConsistency, close_loop, detect_loop
 from tambridge.frontend.orb.depth_time import colour_from_depth_motion, depth_at_colour_time
-from tambridge.frontend.orb.dense_depth import DenseReference, DenseTerm, dense_reference, dense_samples
+from tambridge.frontend.orb.dense_depth import DenseReference, DenseTerm, align_depth, dense_reference, dense_samples
 from tambridge.frontend.orb.map_matching import PoseFix, localise, match_map_points, refine_with_matches
 from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.orb.features import FrameFeatures, OrbExtractor
@@ -117,6 +118,7 @@ class OrbFrontend:
         # The last keyframe's depth, for the dense depth term (None with dense_depth off or before the first).
         self._dense_reference: DenseReference | None = None
         self.frames_with_dense_depth = 0
+        self.frames_tracked_by_depth = 0
         self._frames_since_keyframe = 0
         self._keyframe_requested = False
         self._lost_streak = 0
@@ -188,6 +190,9 @@ class OrbFrontend:
         if fix is None or fix.inlier_count < self.config.min_inliers:
             relocalisation = self._relocalise(features, grid, frame.depth_m)
             if relocalisation is None:
+                by_depth = self._track_by_depth(frame, predicted, camera_from_world_last)
+                if by_depth is not None:
+                    return by_depth
                 if self._lost_streak >= LOST_FRAMES_BEFORE_NEW_SEGMENT:
                     started = self._start_segment(frame, features)
                     if started is not None:
@@ -250,19 +255,51 @@ class OrbFrontend:
         """The point-to-plane depth term against the last keyframe's depth, where ``dense_depth`` asks for it
         (auto: fewer than ``dense_auto_max_matches`` matches or a motion prior turning fast); else None."""
         config = self.config
-        reference = self._dense_reference
-        if config.dense_depth == DenseDepthUse.never or reference is None:
+        if config.dense_depth == DenseDepthUse.never or self._dense_reference is None:
             return None
         if config.dense_depth == DenseDepthUse.auto:
             cos_angle = np.clip((np.trace(self._motion[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
             if matches >= config.dense_auto_max_matches and np.degrees(np.arccos(cos_angle)) <= config.dense_auto_min_rotation_deg:
                 return None
+        self.frames_with_dense_depth += 1
+        return self._dense_term_of(depth_m)
+
+    def _dense_term_of(self, depth_m: np.ndarray) -> DenseTerm:
+        """The depth term of ``depth_m`` (H, W) against the last keyframe's depth (there must be one)."""
+        config = self.config
+        reference = self._dense_reference
         with self._timed("pnp"):
             samples = dense_samples(depth_m, self.K, config.dense_sample_stride_px, config.min_depth_m, config.max_depth_m)
-        self.frames_with_dense_depth += 1
         return DenseTerm(reference, self.map.keyframes[reference.keyframe_id].camera_from_world, samples, self.K,
                          config.dense_depth_weight, config.dense_depth_noise_per_m, config.dense_depth_huber_sigmas,
                          config.dense_depth_max_distance_m)
+
+    def _track_by_depth(self, frame: Frame, predicted: np.ndarray, camera_from_world_last: np.ndarray) -> TrackResult | None:
+        """The frame tracked by the depth term alone (:func:`align_depth` from the motion prior ``predicted``) against
+        the last keyframe's surface, where ORB could not place it and ``depth_only_tracking`` allows: right after a
+        tracked frame (the prior is a tracked pose's), and only where the pose found keeps ``depth_only_min_share``
+        of the frame's depth on the surface and the surface holds every motion (``depth_only_min_conditioning``);
+        else None. Such a frame brings no map points, so it never becomes a keyframe."""
+        config = self.config
+        if (not config.depth_only_tracking or config.dense_depth == DenseDepthUse.never or self._dense_reference is None
+                or self._lost_streak):
+            return None
+        term = self._dense_term_of(frame.depth_m)
+        if len(term.samples_camera_m) == 0:
+            return None
+        with self._timed("pnp"):
+            alignment = align_depth(predicted, term)
+        if alignment.associated_share < config.depth_only_min_share or alignment.conditioning < config.depth_only_min_conditioning:
+            return None
+        self.frames_tracked_by_depth += 1
+        logger.info("frame %d (t=%.6f): tracked by its depth alone (too few ORB matches; %.0f %% of its depth on the "
+                    "keyframe's surface)", frame.index, frame.timestamp_s, 100 * alignment.associated_share)
+        self._motion = alignment.camera_from_world @ inverse(camera_from_world_last)
+        self._frames_since_keyframe += 1
+        self._record(frame, alignment.camera_from_world, tracked=True)
+        return TrackResult(frame_index=frame.index, timestamp_s=frame.timestamp_s,
+                           world_from_camera=inverse(alignment.camera_from_world), tracked=True, is_keyframe=False,
+                           inlier_count=0, relocalised=False, keyframe=None)
 
     def _track_local_map(
         self, features: FrameFeatures, grid, predicted: np.ndarray, radius_scale: float, depth_m: np.ndarray,
@@ -579,6 +616,7 @@ class OrbFrontend:
             timings_s=dict(self.timings_s),
             frames_lost=self.frames_lost,
             frames_relocalised=self.frames_relocalised,
+            frames_tracked_by_depth=self.frames_tracked_by_depth,
             loops_closed=self.loops_closed,
             keyframes_culled=self.keyframes_culled,
             map_point_observations=map_point_observations(self.map, good),
