@@ -90,6 +90,7 @@ def track_segment(frames, sequence, config, trajectory_path: Path | None = None)
             "rpe_deg": errors.rpe_rot_rmse_deg, "fps": len(frames) / tracking_s, "tracking_s": tracking_s,
             "tracking_thread_cpu_ms": 1e3 * thread_cpu_s / len(frames), "stage_s": result.timings_s,
             "frames_with_dense": frontend.frames_with_dense_depth, "lost": result.frames_lost,
+            "tracked_by_depth": result.frames_tracked_by_depth,
             "keyframes": len(result.keyframe_poses), "loops": result.loops_closed}
 
 
@@ -225,7 +226,8 @@ def format_table(rows: list[dict]) -> str:
                ("ATE cm", "ate_cm", "{:.2f}"), ("max cm", "max_cm", "{:.2f}"), ("RPE cm/frame", "rpe_cm", "{:.3f}"),
                ("RPE deg/frame", "rpe_deg", "{:.3f}"), ("frames/s", "fps", "{:.1f}"),
                ("tracking CPU ms/frame", "tracking_thread_cpu_ms", "{:.1f}"),
-               ("frames with term", "frames_with_dense", "{}"), ("lost", "lost", "{}"), ("keyframes", "keyframes", "{}")]
+               ("frames with term", "frames_with_dense", "{}"), ("lost", "lost", "{}"),
+               ("tracked by depth", "tracked_by_depth", "{}"), ("keyframes", "keyframes", "{}")]
     lines = ["| " + " | ".join(title for title, _, _ in columns) + " |", "|" + "---|" * len(columns)]
     for row in rows:
         lines.append("| " + " | ".join("-" if row.get(key) is None else form.format(row[key]) for _, key, form in columns) + " |")
