@@ -122,6 +122,7 @@ def test_frames_without_colour_are_tracked_by_their_depth(sequence, depth_only):
     assert [r.tracked for r in results[12:14]] == [depth_only] * 2 and all(r.tracked for r in results[14:])
     assert not any(r.is_keyframe for r in results[12:14])
     assert (final.frames_tracked_by_depth, final.frames_lost) == ((2, 0) if depth_only else (0, 2))
+    assert list(np.flatnonzero(final.tracked_by_depth)) == ([12, 13] if depth_only else [])
     if depth_only:
         errors = evaluate_trajectory(final.trajectory, sequence.ground_truth).ate_errors_m
         assert np.max(errors[12:14]) < 0.02 and np.sqrt(np.mean(errors ** 2)) < 0.02

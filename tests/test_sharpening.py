@@ -127,7 +127,8 @@ def test_frames_between_are_fitted_at_their_own_resolution_in_chunks_of_their_ow
     stage, _ = coarse_stage(sequence, tmp_path, window_size=3, iterations=2)
     stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=2, sharp_resolution_scale=1.5,
                                               sharp_frames_between=1, sharp_between_resolution_scale=0.5)
-    tracking = types.SimpleNamespace(trajectory=sequence.ground_truth, tracked=np.ones(len(sequence), bool))
+    tracking = types.SimpleNamespace(trajectory=sequence.ground_truth, tracked=np.ones(len(sequence), bool),
+                                     tracked_by_depth=None)
     frames = stage.frames_between(tracking, held_out=range(0, len(sequence), 3))
     assert [frame.frame_index for frame in frames] == [4, 10, 16, 22]
     calls = []
@@ -145,10 +146,23 @@ def test_frames_between_are_fitted_at_their_own_resolution_in_chunks_of_their_ow
                                                                         ((80, 60), 3), ((80, 60), 1)] * 2)
     assert all(shapes == {(size[1], size[0], 3)} for size, shapes, _ in calls)
 
+def test_frames_tracked_by_their_depth_alone_are_never_fitted_between_the_views(synthetic_sequence_dir, tmp_path):
+    """Their colour is what the tracker could not use (a covered lens): the middles are taken among the others."""
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
+    stage, _ = coarse_stage(sequence, tmp_path, sharp_frames_between=1)
+    by_depth = np.zeros(len(sequence), bool)
+    by_depth[[4, 10]] = True
+    tracking = types.SimpleNamespace(trajectory=sequence.ground_truth, tracked=np.ones(len(sequence), bool),
+                                     tracked_by_depth=by_depth)
+    # Views at 0, 6, 12 and 18, every 3rd frame held out: without the mark [4, 10, 16, 22] (the test below).
+    assert [frame.frame_index for frame in stage.frames_between(tracking, range(0, len(sequence), 3))] == [2, 8, 16, 22]
+
+
 def test_with_the_bridge_on_the_frames_between_are_the_sharpest_the_tracker_scored(synthetic_sequence_dir, tmp_path):
     sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
     stage, _ = coarse_stage(sequence, tmp_path, sharp_frames_between=1)
-    tracking = types.SimpleNamespace(trajectory=sequence.ground_truth, tracked=np.ones(len(sequence), bool))
+    tracking = types.SimpleNamespace(trajectory=sequence.ground_truth, tracked=np.ones(len(sequence), bool),
+                                     tracked_by_depth=None)
     held_out = range(0, len(sequence), 3)
     # Bridge off (the ablation): the middles of the usable frames between the views at 0, 6, 12 and 18.
     assert [frame.frame_index for frame in stage.frames_between(tracking, held_out)] == [4, 10, 16, 22]
@@ -296,7 +310,8 @@ def test_frames_between_views_sharpen_the_map_where_no_view_is(synthetic_sequenc
     sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
     stage, _ = coarse_stage(sequence, tmp_path)
     held_out = list(range(0, len(sequence), 3))
-    tracking = types.SimpleNamespace(trajectory=sequence.ground_truth, tracked=np.ones(len(sequence), bool))
+    tracking = types.SimpleNamespace(trajectory=sequence.ground_truth, tracked=np.ones(len(sequence), bool),
+                                     tracked_by_depth=None)
     tracking.tracked[13] = False  # a lost frame is not fitted either
 
     def held_out_l1() -> float:

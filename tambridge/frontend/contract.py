@@ -96,8 +96,9 @@ class FrontendResult:
     ``keyframe_poses`` keyframe id -> 4x4; ``keyframe_frame_indices`` keyframe id -> frame index. These three list
     every keyframe ever announced by a :class:`KeyframeEvent`, culled ones included (``keyframes_culled`` of
     them, ORB only): a culled keyframe's pose is its parent keyframe's final pose times the relative pose it had
-    when it was culled, so Gaussians anchored to it move with the map. ``frames_tracked_by_depth`` of the tracked
-    frames were placed by their depth alone (ORB only: ``depth_only_tracking``).
+    when it was culled, so Gaussians anchored to it move with the map. ``tracked_by_depth`` (N,) bool marks the
+    tracked frames placed by their depth alone (ORB only, ``depth_only_tracking``; None: none were), whose colour
+    the tracker could not use.
     ``map_points_world_m`` (P, 3), ``map_point_colours`` (P, 3) uint8 RGB and ``map_point_ids`` (P,) are the
     good map points (empty for Open3D), ``map_point_observations`` their observations in the keyframes (the points'
     tracks, for exporters; empty for Open3D). ``timings_s`` holds seconds per stage (keys of :data:`STAGES`).
@@ -116,8 +117,13 @@ class FrontendResult:
     frames_relocalised: int
     loops_closed: int
     keyframes_culled: int = 0
-    frames_tracked_by_depth: int = 0
+    tracked_by_depth: np.ndarray | None = None
     map_point_observations: MapPointObservations = dataclasses.field(default_factory=MapPointObservations.empty)
+
+    @property
+    def frames_tracked_by_depth(self) -> int:
+        """How many frames ``tracked_by_depth`` marks."""
+        return 0 if self.tracked_by_depth is None else int(np.count_nonzero(self.tracked_by_depth))
 
 
 class Frontend(Protocol):

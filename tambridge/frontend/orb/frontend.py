@@ -85,6 +85,7 @@ class _FrameRecord:
     reference_keyframe: int
     reference_from_camera: np.ndarray
     tracked: bool
+    by_depth: bool = False  # tracked by its depth alone
 
 
 class OrbFrontend:
@@ -118,7 +119,6 @@ class OrbFrontend:
         # The last keyframe's depth, for the dense depth term (None with dense_depth off or before the first).
         self._dense_reference: DenseReference | None = None
         self.frames_with_dense_depth = 0
-        self.frames_tracked_by_depth = 0
         self._frames_since_keyframe = 0
         self._keyframe_requested = False
         self._lost_streak = 0
@@ -291,12 +291,11 @@ class OrbFrontend:
             alignment = align_depth(predicted, term)
         if alignment.associated_share < config.depth_only_min_share or alignment.conditioning < config.depth_only_min_conditioning:
             return None
-        self.frames_tracked_by_depth += 1
         logger.info("frame %d (t=%.6f): tracked by its depth alone (too few ORB matches; %.0f %% of its depth on the "
                     "keyframe's surface)", frame.index, frame.timestamp_s, 100 * alignment.associated_share)
         self._motion = alignment.camera_from_world @ inverse(camera_from_world_last)
         self._frames_since_keyframe += 1
-        self._record(frame, alignment.camera_from_world, tracked=True)
+        self._record(frame, alignment.camera_from_world, tracked=True, by_depth=True)
         return TrackResult(frame_index=frame.index, timestamp_s=frame.timestamp_s,
                            world_from_camera=inverse(alignment.camera_from_world), tracked=True, is_keyframe=False,
                            inlier_count=0, relocalised=False, keyframe=None)
@@ -562,13 +561,13 @@ class OrbFrontend:
             previous_total=previous_total,
         )
 
-    def _record(self, frame: Frame, camera_from_world: np.ndarray, tracked: bool) -> None:
+    def _record(self, frame: Frame, camera_from_world: np.ndarray, tracked: bool, by_depth: bool = False) -> None:
         reference = self._reference
         if reference is None:
-            record = _FrameRecord(frame.index, frame.timestamp_s, -1, inverse(camera_from_world), tracked)
+            record = _FrameRecord(frame.index, frame.timestamp_s, -1, inverse(camera_from_world), tracked, by_depth)
         else:
             record = _FrameRecord(frame.index, frame.timestamp_s, reference.id,
-                                  reference.camera_from_world @ inverse(camera_from_world), tracked)
+                                  reference.camera_from_world @ inverse(camera_from_world), tracked, by_depth)
         self._records.append(record)
         self._last = record
 
@@ -616,7 +615,7 @@ class OrbFrontend:
             timings_s=dict(self.timings_s),
             frames_lost=self.frames_lost,
             frames_relocalised=self.frames_relocalised,
-            frames_tracked_by_depth=self.frames_tracked_by_depth,
+            tracked_by_depth=np.array([r.by_depth for r in self._records], bool),
             loops_closed=self.loops_closed,
             keyframes_culled=self.keyframes_culled,
             map_point_observations=map_point_observations(self.map, good),
