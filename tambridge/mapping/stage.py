@@ -501,9 +501,8 @@ class MappingStage:
         """The tracked frames the sharpening pass fits besides the views: ``mapper.sharp_frames_between`` between
         each view's frame and the next one's (after the last view: up to the sequence's end), one from each equal
         share of the tracked frames there that are not in ``held_out`` nor tracked by their depth alone
-        (:func:`frames_between_views`): with the
-        bridge on the share's sharpest, else its middle; each at its rendering pose, rendered over its exposure
-        where blur modelling is on."""
+        (:func:`frames_between_views`): with the bridge on the share's sharpest, else its middle; each at its
+        rendering pose, rendered over its exposure where blur modelling is on."""
         if not self.views or not self.mapper_config.sharp_frames_between:
             return []
         usable = np.asarray(tracking.tracked, bool).copy()
