@@ -40,37 +40,30 @@ GROUND_TRUTH_MARGIN_S = 0.02
 within 20 ms)."""
 
 
-def data_lines(path: Path) -> tuple[list[str], list[str]]:
-    """A TUM list file's comment lines and its data lines."""
-    lines = [line for line in path.read_text().splitlines() if line.strip()]
-    return [line for line in lines if line.startswith("#")], [line for line in lines if not line.startswith("#")]
-
-
 def write_segment(sequence: Path, start: int, end: int, folder: Path) -> Path:
-    """A TUM-layout folder of links to colour frames ``start..end-1`` of ``sequence`` (indices into rgb.txt), the
-    same rows of depth.txt when it lists one depth image per colour frame (else all of them: the reader associates
-    them), the ground truth within the frames' span and the folder's camera.yaml; returns ``folder``."""
-    rgb_comments, rgb_rows = data_lines(sequence / "rgb.txt")
-    if not 0 <= start < end <= len(rgb_rows):
-        raise SystemExit(f"{sequence}: segment {start}-{end} lies outside its {len(rgb_rows)} colour frames")
-    depth_comments, depth_rows = data_lines(sequence / "depth.txt")
-    kept_rgb = rgb_rows[start:end]
-    kept_depth = depth_rows[start:end] if len(depth_rows) == len(rgb_rows) else depth_rows
-    first_s, last_s = float(kept_rgb[0].split()[0]), float(kept_rgb[-1].split()[0])
-    truth_comments, truth_rows = data_lines(sequence / "groundtruth.txt")
-    kept_truth = [row for row in truth_rows
-                  if first_s - GROUND_TRUTH_MARGIN_S <= float(row.split()[0]) <= last_s + GROUND_TRUTH_MARGIN_S]
+    """A TUM-layout folder of links to colour frames ``start..end-1`` of ``sequence`` (indices into rgb.txt, read by
+    :func:`~tambridge.io.tum.read_file_list`), the same rows of depth.txt when it lists one depth image per colour
+    frame (else all of them: the reader associates them), the ground truth within the frames' span and the folder's
+    camera.yaml; returns ``folder``."""
+    from tambridge.io.tum import read_file_list
+    from tambridge.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
+
+    colour, depth = read_file_list(sequence / "rgb.txt"), read_file_list(sequence / "depth.txt")
+    if not 0 <= start < end <= len(colour):
+        raise SystemExit(f"{sequence}: segment {start}-{end} lies outside its {len(colour)} colour frames")
+    kept = {"rgb.txt": colour[start:end], "depth.txt": depth[start:end] if len(depth) == len(colour) else depth}
+    truth = read_tum_trajectory(sequence / "groundtruth.txt")
+    within = ((truth.timestamps_s >= kept["rgb.txt"][0][0] - GROUND_TRUTH_MARGIN_S)
+              & (truth.timestamps_s <= kept["rgb.txt"][-1][0] + GROUND_TRUTH_MARGIN_S))
     folder.mkdir(parents=True, exist_ok=True)
-    for name, comments, rows in (("rgb.txt", rgb_comments, kept_rgb), ("depth.txt", depth_comments, kept_depth),
-                                 ("groundtruth.txt", truth_comments, kept_truth)):
-        (folder / name).write_text("\n".join(comments + rows) + "\n")
-        if name == "groundtruth.txt":
-            continue
-        for row in rows:
-            link = folder / row.split()[1]
+    write_tum_trajectory(folder / "groundtruth.txt", Trajectory(truth.timestamps_s[within], truth.world_from_camera[within]))
+    for listing, entries in kept.items():
+        (folder / listing).write_text("".join(f"{stamp:.6f} {name}\n" for stamp, name in entries))
+        for _, name in entries:
+            link = folder / name
             link.parent.mkdir(parents=True, exist_ok=True)
             if not link.is_symlink():
-                link.symlink_to((sequence / row.split()[1]).resolve())
+                link.symlink_to((sequence / name).resolve())
     if (sequence / "camera.yaml").is_file() and not (folder / "camera.yaml").exists():
         (folder / "camera.yaml").symlink_to((sequence / "camera.yaml").resolve())
     return folder

@@ -85,15 +85,17 @@ def test_turns_benchmark_tracks_a_segment_as_a_sequence_of_its_own(synthetic_seq
     """``benchmarks/turns.py`` on frames 5-24 of the synthetic loop: the segment folder holds those frames and the
     ground truth of their span, and the run scores them; Sim(3) has one more degree of freedom than SE(3), so its
     least-squares ATE is never the larger."""
-    from benchmarks.turns import data_lines, write_segment
+    from benchmarks.turns import write_segment
+    from tambridge.io.tum import read_file_list
+    from tambridge.trajectory import read_tum_trajectory
 
     segment = write_segment(synthetic_sequence_dir, 5, 25, tmp_path / "segment")
-    rgb = data_lines(segment / "rgb.txt")[1]
-    source = data_lines(synthetic_sequence_dir / "rgb.txt")[1][5:25]
-    assert [row.split()[1] for row in rgb] == [row.split()[1] for row in source]
-    assert all((segment / row.split()[1]).is_file() for row in rgb)
-    truth_stamps = [float(row.split()[0]) for row in data_lines(segment / "groundtruth.txt")[1]]
-    assert truth_stamps[0] >= float(rgb[0].split()[0]) - 0.02 and truth_stamps[-1] <= float(rgb[-1].split()[0]) + 0.02
+    rgb = read_file_list(segment / "rgb.txt")
+    source = read_file_list(synthetic_sequence_dir / "rgb.txt")[5:25]
+    assert [name for _, name in rgb] == [name for _, name in source]
+    assert all((segment / name).is_file() for _, name in rgb)
+    truth_stamps = read_tum_trajectory(segment / "groundtruth.txt").timestamps_s
+    assert truth_stamps[0] >= rgb[0][0] - 0.02 and truth_stamps[-1] <= rgb[-1][0] + 0.02
     output = tmp_path / "turns.json"
     child = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "turns.py"), "--sequence",
                             str(synthetic_sequence_dir), "--segments", "5-25", "--methods", "orb", "--work",

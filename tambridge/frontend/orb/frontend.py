@@ -281,8 +281,8 @@ class OrbFrontend:
         of the frame's depth on the surface and the surface holds every motion (``depth_only_min_conditioning``);
         else None. Such a frame brings no map points, so it never becomes a keyframe."""
         config = self.config
-        if (not config.depth_only_tracking or config.dense_depth == DenseDepthUse.never or self._dense_reference is None
-                or self._lost_streak):
+        # No keyframe depth is kept with dense_depth never: the reference is None then.
+        if not config.depth_only_tracking or self._dense_reference is None or self._lost_streak:
             return None
         term = self._dense_term_of(frame.depth_m)
         if len(term.samples_camera_m) == 0:
