@@ -238,9 +238,12 @@ def _parse_size(size: str) -> tuple[int, int]:
 @click.option("--depth-delay", type=float, default=0.0, show_default=True, metavar="SECONDS",
               help="Depth images taken this long after their colour images (negative: before), stamped and rendered "
                    "at that time, as a Kinect's two streams (TUM: -17 to +16 ms).")
+@click.option("--rolling-shutter", type=click.FloatRange(min=0.0), default=0.0, show_default=True, metavar="READOUT_S",
+              help="A rolling-shutter colour camera: rows read top to bottom over READOUT_S seconds, the middle row "
+                   "at the stamp (written to camera.yaml as rolling_shutter_s); depth stays global. 0: global shutter.")
 @click.option("--seed", type=int, default=0)
 def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_subframes, rotation_bursts, burst_speed,
-          burst_duration, supersampling, colour_baseline, colour_focal_scale, depth_delay, seed) -> None:
+          burst_duration, supersampling, colour_baseline, colour_focal_scale, depth_delay, rolling_shutter, seed) -> None:
     """Write a synthetic TUM-layout sequence (textured room, closed loop) with exact ground truth."""
     from tambridge.io.synthetic import RotationBursts, SynthOptions, write_synthetic_sequence
 
@@ -252,7 +255,7 @@ def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_su
                            bursts=RotationBursts(rotation_bursts, burst_speed, burst_duration),
                            supersampling=supersampling, seed=seed,
                            colour_baseline_m=colour_baseline, colour_focal_scale=colour_focal_scale,
-                           depth_delay_s=depth_delay)
+                           depth_delay_s=depth_delay, rolling_shutter_s=rolling_shutter)
     write_synthetic_sequence(output_dir, options)
     click.echo(f"wrote {frames} frames to {output_dir}")
 

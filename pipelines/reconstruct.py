@@ -124,7 +124,7 @@ def reconstruct(
     accelerometer = find_accelerometer(sequence.folder) if config.export.world == ExportWorld.upright else None
     read_seconds = time.perf_counter() - read_started
     # config.yaml records the values the run uses: the ORB settings as adapted to this camera's image size.
-    config = config_for_camera(config, sequence.camera.width, sequence.camera.height)
+    config = config_for_camera(config, sequence.camera)
     fingerprint = sequence_fingerprint(sequence)
     if checkpoint is not None:
         check_resumable(checkpoint_file, checkpoint, to_dict(config), fingerprint)

@@ -60,9 +60,18 @@ def exposure_offsets_s(count: int, exposure_s: float) -> np.ndarray:
     return (np.arange(count) + 0.5) / count * exposure_s - exposure_s / 2.0
 
 
+def rolling_shutter_row_times_s(rows_px: np.ndarray, height: int, readout_s: float) -> np.ndarray:
+    """Times (N,), seconds from a frame's timestamp, at which a rolling shutter that reads ``height`` rows over
+    ``readout_s`` takes the rows ``rows_px`` (N,): row ``v`` at ``(v / height - 1/2) readout_s``, the middle row at
+    the timestamp."""
+    return (np.asarray(rows_px, np.float64) / height - 0.5) * readout_s
+
+
 @dataclasses.dataclass(frozen=True)
 class Camera:
-    """Pinhole intrinsics of the colour camera, in pixels; ``distortion`` is OpenCV's (k1 k2 p1 p2 k3)."""
+    """Pinhole intrinsics of the colour camera, in pixels; ``distortion`` is OpenCV's (k1 k2 p1 p2 k3).
+    ``rolling_shutter_s``: the colour image's rows are read top to bottom over this long, seconds
+    (:func:`rolling_shutter_row_times_s`); 0 for a global shutter."""
 
     width: int
     height: int
@@ -71,6 +80,7 @@ class Camera:
     cx: float
     cy: float
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    rolling_shutter_s: float = 0.0
 
     @property
     def K(self) -> np.ndarray:
@@ -147,6 +157,10 @@ class Camera:
         """The same intrinsics with no distortion (what frames are after undistortion)."""
         return dataclasses.replace(self, distortion=(0.0, 0.0, 0.0, 0.0, 0.0))
 
+    def rows(self, start: int, stop: int) -> "Camera":
+        """The camera of the image's rows ``start`` to ``stop`` (exclusive): a crop, same rays."""
+        return dataclasses.replace(self, height=stop - start, cy=self.cy - start)
+
     def scaled(self, factor: float) -> "Camera":
         """Intrinsics of the image resized by ``factor`` (pixel-centre convention of cv2.resize)."""
         return Camera(
@@ -157,6 +171,7 @@ class Camera:
             cx=(self.cx + 0.5) * factor - 0.5,
             cy=(self.cy + 0.5) * factor - 0.5,
             distortion=self.distortion,
+            rolling_shutter_s=self.rolling_shutter_s,
         )
 
 
@@ -179,17 +194,23 @@ class RgbdSensor:
     exposure_s: float | None = None
 
 
+# The Kinect v1's colour camera reads its rows over about this long: the readout at which tracking fr1/xyz fits
+# the motion capture best (docs/benchmarks.md, "A rolling shutter"). Its own 7-Scenes camera file gives it too.
+KINECT_V1_ROLLING_SHUTTER_S = 0.015
+
 # TUM RGB-D calibration (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats), 640x480.
 TUM_PRESETS: dict[str, RgbdSensor] = {
-    "fr1": RgbdSensor(Camera(640, 480, 517.3, 516.5, 318.6, 255.3, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633))),
-    "fr2": RgbdSensor(Camera(640, 480, 520.9, 521.0, 325.1, 249.7, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172))),
+    "fr1": RgbdSensor(Camera(640, 480, 517.3, 516.5, 318.6, 255.3, (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+                             KINECT_V1_ROLLING_SHUTTER_S)),
+    "fr2": RgbdSensor(Camera(640, 480, 520.9, 521.0, 325.1, 249.7, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
+                             KINECT_V1_ROLLING_SHUTTER_S)),
     "fr3": RgbdSensor(Camera(640, 480, 535.4, 539.2, 320.1, 247.6)),
 }
 
 _CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
 _COLOUR_KEYS = ("colour_fx", "colour_fy", "colour_cx", "colour_cy", "colour_from_depth")
 _KNOWN_KEYS = frozenset((*_CAMERA_KEYS, "depth_scale", "depth_invalid", "distortion", *(f"d{i}" for i in range(5)),
-                         "exposure_s", *_COLOUR_KEYS, "colour_width", "colour_height", "colour_distortion"))
+                         "exposure_s", "rolling_shutter_s", *_COLOUR_KEYS, "colour_width", "colour_height", "colour_distortion"))
 
 
 def tum_preset_for_folder(folder: Path) -> RgbdSensor | None:
@@ -200,6 +221,9 @@ def tum_preset_for_folder(folder: Path) -> RgbdSensor | None:
             return TUM_PRESETS[f"fr{index}"]
     return None
 
+
+MAX_ROLLING_SHUTTER_S = 0.1
+"""Longest rolling-shutter readout a camera file may give (s): a frame's rows cannot take longer than a 10 Hz frame."""
 
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 """Coefficient counts OpenCV's distortion model accepts (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]])."""
@@ -224,7 +248,8 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
     try:
         distortion = values.get("distortion") or [values.get(f"d{i}", 0.0) for i in range(5)]
         camera = _camera_from_values(values, "")
-        camera = dataclasses.replace(camera, distortion=tuple(float(c) for c in distortion))
+        camera = dataclasses.replace(camera, distortion=tuple(float(c) for c in distortion),
+                                     rolling_shutter_s=float(values.get("rolling_shutter_s") or 0.0))
         colour_camera, colour_from_depth = _colour_camera_from_values(values, camera, source)
         invalid = values.get("depth_invalid")
         sensor = RgbdSensor(
@@ -252,6 +277,9 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
         raise CameraConfigError(f"{source}: depth_scale must be positive")
     if sensor.exposure_s is not None and sensor.exposure_s < 0:
         raise CameraConfigError(f"{source}: exposure_s must be >= 0 (seconds)")
+    if not 0 <= camera.rolling_shutter_s <= MAX_ROLLING_SHUTTER_S:
+        raise CameraConfigError(f"{source}: rolling_shutter_s {camera.rolling_shutter_s:g} must be in [0, "
+                                f"{MAX_ROLLING_SHUTTER_S:g}] (seconds from the first row to the last; 0: global shutter)")
     return sensor
 
 

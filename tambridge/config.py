@@ -27,6 +27,9 @@ from tambridge.gaussians.config import MapperConfig
 from tambridge.io.config import InputConfig
 from tambridge.settings import NON_NEGATIVE, Choice, Device, section, setting
 
+if typing.TYPE_CHECKING:
+    from tambridge.camera import Camera
+
 
 @dataclasses.dataclass
 class Config:
@@ -213,9 +216,12 @@ def describe_config(config: Config) -> list[str]:
     return lines
 
 
-def config_for_camera(config: Config, width: int, height: int) -> Config:
-    """``config`` with the values a run on a ``width`` x ``height`` camera uses: the ORB settings adapted by
-    :func:`~tambridge.frontend.orb.config.scaled_for_image`, with ``scale_with_image`` off so that these values,
-    written to config.yaml and loaded again, give the same run. ``config`` itself is not changed."""
-    orb = dataclasses.replace(scaled_for_image(config.frontend.orb, width, height), scale_with_image=False)
+def config_for_camera(config: Config, camera: "Camera") -> Config:
+    """``config`` with the values a run on ``camera`` uses: the ORB settings adapted to its image size by
+    :func:`~tambridge.frontend.orb.config.scaled_for_image`, with ``scale_with_image`` off, and its rolling-shutter
+    readout where ``frontend.orb.rolling_shutter_s`` is null, so that these values, written to config.yaml and
+    loaded again, give the same run. ``config`` itself is not changed."""
+    orb = dataclasses.replace(scaled_for_image(config.frontend.orb, camera.width, camera.height), scale_with_image=False)
+    if orb.rolling_shutter_s is None:
+        orb = dataclasses.replace(orb, rolling_shutter_s=camera.rolling_shutter_s)
     return dataclasses.replace(config, frontend=dataclasses.replace(config.frontend, orb=orb))

@@ -11,7 +11,7 @@ import yaml
 from click.testing import CliRunner
 
 from cli import main
-from tambridge.camera import load_sensor_file
+from tambridge.camera import Camera, load_sensor_file
 from tambridge.config import (Config, check_config, config_for_camera, config_keys, describe_config, load_config,
                               to_dict, to_yaml)
 from tambridge.device import resolve_device
@@ -261,21 +261,30 @@ def test_cli_choices_come_from_the_enums():
 def test_config_for_camera_records_the_values_the_frontend_uses(width, height):
     config = load_config(None, ["frontend.orb.n_features=1200"])
     before = to_dict(config)
-    effective = config_for_camera(config, width, height)
+    camera = Camera(width, height, 500.0, 500.0, width / 2, height / 2)
+    effective = config_for_camera(config, camera)
     assert to_dict(config) == before, "the given config is left as it was"
     scaled = scaled_for_image(config.frontend.orb, width, height)
-    assert effective.frontend.orb == dataclasses.replace(scaled, scale_with_image=False)
+    assert effective.frontend.orb == dataclasses.replace(scaled, scale_with_image=False, rolling_shutter_s=0.0)
     assert effective.frontend.orb.n_features == round(1200 * math.sqrt(math.sqrt(width * height / (640 * 480))))
     # The frontend, given the recorded values, adapts nothing more; config.yaml loaded again is the same run.
     assert scaled_for_image(effective.frontend.orb, width, height) == effective.frontend.orb
     reloaded = check_config(load_config(None, [f"{key}={value}" for key, value in config_values(effective)
                                                if value is not None]))
-    assert config_for_camera(reloaded, width, height) == reloaded == effective
+    assert config_for_camera(reloaded, camera) == reloaded == effective
     assert dataclasses.replace(effective, frontend=config.frontend) == config
 
 
 def test_config_for_camera_at_the_reference_size_changes_only_the_flag():
-    effective = config_for_camera(Config(), 640, 480)
-    assert effective.frontend.orb == dataclasses.replace(Config().frontend.orb, scale_with_image=False)
-    small = config_for_camera(Config(), 160, 120).frontend.orb
+    camera = Camera(640, 480, 500.0, 500.0, 320.0, 240.0)
+    effective = config_for_camera(Config(), camera)
+    assert effective.frontend.orb == dataclasses.replace(Config().frontend.orb, scale_with_image=False, rolling_shutter_s=0.0)
+    small = config_for_camera(Config(), Camera(160, 120, 125.0, 125.0, 80.0, 60.0)).frontend.orb
     assert (small.n_features, small.n_levels, small.edge_threshold_px, small.grid_cell_px) == (750, 4, 10, 16)
+
+
+def test_config_for_camera_records_the_cameras_rolling_shutter():
+    kinect = Camera(640, 480, 517.3, 516.5, 318.6, 255.3, rolling_shutter_s=0.015)
+    assert config_for_camera(Config(), kinect).frontend.orb.rolling_shutter_s == 0.015
+    given = load_config(None, ["frontend.orb.rolling_shutter_s=0"])
+    assert config_for_camera(given, kinect).frontend.orb.rolling_shutter_s == 0.0

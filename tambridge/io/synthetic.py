@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
 import cv2
 import numpy as np
 import yaml
 
-from tambridge.camera import Camera, exposure_offsets_s
+from tambridge.camera import Camera, exposure_offsets_s, rolling_shutter_row_times_s
 from tambridge.errors import ConfigError
 from tambridge.files import atomic_path, atomic_write_text
 from tambridge.geometry import inverse, look_at
@@ -316,7 +316,7 @@ BLUR_STEP_PX = 0.5
 MAX_BLUR_SUBFRAMES = 128
 
 
-def subframe_positions(frame_index: int, fps: float, exposure_s: float, count: int) -> np.ndarray:
+def subframe_positions(frame_index: float, fps: float, exposure_s: float, count: int) -> np.ndarray:
     """Fractional frame positions (count,) of the sub-frames of frame ``frame_index``: the midpoints of ``count``
     equal slices of the exposure ``[t - exposure_s / 2, t + exposure_s / 2]`` around its timestamp ``t``."""
     return frame_index + exposure_offsets_s(count, exposure_s) * fps
@@ -341,6 +341,24 @@ def render_exposure(scene: SyntheticScene, camera: Camera, world_from_subframes:
     for pose in world_from_subframes:
         total += render(scene, camera, pose, supersampling)[0]
     return (total / len(world_from_subframes)).astype(np.float32)
+
+
+ROLLING_SHUTTER_BANDS = 32
+"""Bands of rows a rolling-shutter frame is rendered in, each band at its middle row's time."""
+
+
+def render_rolling_shutter(colour_taken: Callable[[float, Camera], np.ndarray], camera: Camera,
+                           readout_s: float) -> np.ndarray:
+    """Colour (H, W, 3) of a rolling-shutter frame of ``camera``: each of :data:`ROLLING_SHUTTER_BANDS` equal bands
+    of rows is ``colour_taken(dt, band_camera)``, the band's image (:meth:`Camera.rows`) taken ``dt`` seconds after
+    the frame's stamp, ``dt`` the band's middle row's time (:func:`~tambridge.camera.rolling_shutter_row_times_s`)."""
+    edges = np.linspace(0, camera.height, min(camera.height, ROLLING_SHUTTER_BANDS) + 1).round().astype(int)
+    bands = []
+    for start, stop in zip(edges[:-1], edges[1:]):
+        middle_row = (start + stop - 1) / 2.0
+        offset_s = float(rolling_shutter_row_times_s(np.array([middle_row]), camera.height, readout_s)[0])
+        bands.append(colour_taken(offset_s, camera.rows(int(start), int(stop))))
+    return np.concatenate(bands, axis=0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -371,9 +389,15 @@ class SynthOptions:
     # The depth image taken this long after the colour image (seconds; negative: before), as a Kinect's two streams
     # are: depth.txt gets that stamp and the depth is rendered at the pose of that time.
     depth_delay_s: float = 0.0
+    # A rolling shutter: the colour image's rows taken one after another over this readout time (seconds), the
+    # middle row at the stamp (see :func:`render_rolling_shutter`); 0: a global shutter. Depth stays global.
+    rolling_shutter_s: float = 0.0
 
     def __post_init__(self) -> None:
         problems = []
+        if not 0.0 <= self.rolling_shutter_s <= 1.0 / self.fps:
+            problems.append(f"rolling shutter readout {self.rolling_shutter_s} s: must be in [0, 1/fps = "
+                            f"{1.0 / self.fps:.4g}] s")
         if not 0.0 <= self.exposure_s <= 1.0 / self.fps:
             problems.append(f"motion blur exposure {self.exposure_s} s: must be in [0, 1/fps = {1.0 / self.fps:.4g}] s")
         if not abs(self.depth_delay_s) < MAX_ASSOCIATION_DIFFERENCE_S:
@@ -447,12 +471,24 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
         if not options.registered:
             colour = render(scene, colour_camera, pose @ depth_from_colour, options.supersampling)[0]
         sharp = colour
-        if options.blurred:
-            exposure_frames = options.exposure_s * options.fps
-            count = options.blur_subframes or blur_subframe_count(
-                camera, depth_m, pose, *path.poses(index + np.array([-0.5, 0.5]) * exposure_frames))
-            subframes = path.poses(subframe_positions(index, options.fps, options.exposure_s, count))
-            colour = render_exposure(scene, colour_camera, subframes @ depth_from_colour, options.supersampling)
+
+        def colour_taken(offset_s: float, rows_camera: Camera, index=index, pose=pose, depth_m=depth_m) -> np.ndarray:
+            """The colour image of ``rows_camera`` (the colour camera or some of its rows), blurred over the
+            exposure, taken ``offset_s`` after the frame's stamp."""
+            position = index + offset_s * options.fps
+            if options.blurred:
+                exposure_frames = options.exposure_s * options.fps
+                count = options.blur_subframes or blur_subframe_count(
+                    camera, depth_m, pose, *path.poses(position + np.array([-0.5, 0.5]) * exposure_frames))
+                subframes = path.poses(subframe_positions(position, options.fps, options.exposure_s, count))
+                return render_exposure(scene, rows_camera, subframes @ depth_from_colour, options.supersampling)
+            return render(scene, rows_camera, path.poses(np.array([position]))[0] @ depth_from_colour,
+                          options.supersampling)[0]
+
+        if options.rolling_shutter_s > 0.0:
+            colour = render_rolling_shutter(colour_taken, colour_camera, options.rolling_shutter_s)
+        elif options.blurred:
+            colour = colour_taken(0.0, colour_camera)
         if options.colour_noise > 0:
             colour = colour + rng.normal(0.0, options.colour_noise, colour.shape).astype(np.float32)
         if options.depth_noise_m > 0:
@@ -475,6 +511,8 @@ def write_synthetic_sequence(folder: Path, options: SynthOptions = SynthOptions(
     camera_values.update(depth_scale=SYNTHETIC_DEPTH_SCALE, distortion=[0.0] * 5)
     if options.blurred:
         camera_values["exposure_s"] = options.exposure_s
+    if options.rolling_shutter_s > 0.0:
+        camera_values["rolling_shutter_s"] = options.rolling_shutter_s
     if not options.registered:
         camera_values.update({f"colour_{field}": getattr(colour_camera, field) for field in ("fx", "fy", "cx", "cy")})
         camera_values["colour_from_depth"] = options.colour_from_depth().tolist()

@@ -59,6 +59,11 @@ class OrbFrontendConfig:
     # frames (docs/benchmarks.md).
     depth_time_compensation: bool = setting(True, "move each frame's depth to its colour image's time with the motion "
                                                    "prior, where the frame's depth has its own timestamp")
+    rolling_shutter_s: float | None = setting(None, "the colour camera's rolling-shutter readout, first row to last "
+                                                    "(s): each frame's keypoints are moved to its middle row's time "
+                                                    "by the camera's motion (null: the camera file's "
+                                                    "rolling_shutter_s or the TUM preset's, else 0; 0: global shutter)",
+                                              NON_NEGATIVE)
     # Matching by projecting local-map points with the motion prior.
     search_radius_px: float = setting(15.0, "radius searched around a projected local-map point (px)", POSITIVE)
     refine_radius_px: float = setting(4.0, "search radius after the pose refinement (px)", POSITIVE)

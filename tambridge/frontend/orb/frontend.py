@@ -4,7 +4,9 @@ Per frame: ORB features with depth (with ``depth_time_compensation``, the depth 
 time by the constant-velocity prior: :mod:`~tambridge.frontend.orb.depth_time`) -> map points of the local map
 projected with the constant-velocity prior and matched by descriptor near their projection -> motion-only
 refinement with a Huber kernel from the prior (PnP-RANSAC only if the prior leaves most matches outliers) -> a
-second, tighter projection search and refinement. Tracking a frame decides whether it becomes a keyframe
+second, tighter projection search and refinement (with a rolling shutter, a third after the keypoints are moved
+from their rows' times to the frame's by the frame's own motion: :mod:`~tambridge.frontend.orb.rolling_shutter`).
+Tracking a frame decides whether it becomes a keyframe
 (ORB-SLAM2's rules); a keyframe adds map points from its depth, culls bad recent points, fuses duplicates (points keep their most distinctive
 descriptor), runs local BA, and looks for a loop (bag of words, candidates consistent over consecutive
 keyframes, PnP verification, pose graph, point fusion). A frame the local map cannot place tries
@@ -59,6 +61,7 @@ from tambridge.frontend.orb.map_matching import PoseFix, localise, match_map_poi
 from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.orb.features import FrameFeatures, OrbExtractor
 from tambridge.frontend.orb.pose_estimation import solve_pnp_ransac
+from tambridge.frontend.orb.rolling_shutter import camera_twist_per_s, keypoints_at_frame_time
 from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 from tambridge.frontend.contract import FrontendResult, KeyframeEvent, MapPointObservations, TrackResult, empty_timings
 from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, scaled_for_image
@@ -100,6 +103,8 @@ class OrbFrontend:
         self.camera = camera
         # A fresh default each time: the config dataclasses are mutable (``--set`` writes into them).
         self.config = scaled_for_image(config if config is not None else OrbFrontendConfig(), camera.width, camera.height)
+        if self.config.rolling_shutter_s is None:
+            self.config = dataclasses.replace(self.config, rolling_shutter_s=camera.rolling_shutter_s)
         self.K = camera.K
         self.map = SlamMap()
         self.extractor = OrbExtractor(camera, self.config)
@@ -185,7 +190,7 @@ class OrbFrontend:
         frame, features = self._depth_at_colour_time(frame, features)
         grid = build_keypoint_grid(features.keypoints_px, self.camera.width, self.camera.height)
         radius_scale = 2.0 if self._lost_streak else 1.0
-        fix, in_view = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m)
+        fix, in_view, dense = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m)
         relocalised = False
         if fix is None or fix.inlier_count < self.config.min_inliers:
             relocalisation = self._relocalise(features, grid, frame.depth_m)
@@ -211,6 +216,7 @@ class OrbFrontend:
             self._motion = np.eye(4)
         elif not self._lost_streak:
             # After lost frames the last pose was a prediction: keep the velocity from before the loss.
+            features, fix = self._refined_at_frame_time(frame, features, fix, camera_from_world_last, dense)
             self._motion = fix.camera_from_world @ inverse(camera_from_world_last)
         self._lost_streak = 0
         points = self.map.points
@@ -250,6 +256,24 @@ class OrbFrontend:
             depth_m = depth_at_colour_time(frame.depth_m, self.K, colour_from_depth)
             moved = self.extractor.lift(features.keypoints_px, features.octaves, features.descriptors, frame.rgb, depth_m)
         return dataclasses.replace(frame, depth_m=depth_m, depth_timestamp_s=None), moved
+
+    def _refined_at_frame_time(self, frame: Frame, features: FrameFeatures, fix: PoseFix,
+                               camera_from_world_last: np.ndarray, dense: DenseTerm | None) -> tuple[FrameFeatures, PoseFix]:
+        """With a rolling shutter (``rolling_shutter_s``), the keypoints moved from their rows' times to the frame's
+        (:mod:`~tambridge.frontend.orb.rolling_shutter`) by the frame's own motion from the last frame to ``fix``,
+        their depth and colour read again there, and the pose refined once more from ``fix`` on its inliers (with
+        the same ``dense`` term). As given with a global shutter or a still camera."""
+        current_from_last = fix.camera_from_world @ inverse(camera_from_world_last)
+        readout_s, interval_s = self.config.rolling_shutter_s, frame.timestamp_s - self._last.timestamp_s
+        if readout_s == 0.0 or not interval_s > 0.0 or np.array_equal(current_from_last, np.eye(4)):
+            return features, fix
+        with self._timed("features"):
+            twist = camera_twist_per_s(current_from_last, interval_s)
+            moved = keypoints_at_frame_time(features.keypoints_px, features.depth_m, self.camera, twist, readout_s)
+            moved = self.extractor.lift(moved, features.octaves, features.descriptors, frame.rgb, frame.depth_m)
+        with self._timed("pnp"):
+            return moved, refine_with_matches(fix.camera_from_world, moved, fix.keypoint_indices, fix.point_ids,
+                                              self.map, self.K, self.config, dense)
 
     def _dense_term(self, depth_m: np.ndarray, matches: int) -> DenseTerm | None:
         """The point-to-plane depth term against the last keyframe's depth, where ``dense_depth`` asks for it
@@ -302,7 +326,7 @@ class OrbFrontend:
 
     def _track_local_map(
         self, features: FrameFeatures, grid, predicted: np.ndarray, radius_scale: float, depth_m: np.ndarray,
-    ) -> tuple[PoseFix | None, np.ndarray]:
+    ) -> tuple[PoseFix | None, np.ndarray, DenseTerm | None]:
         """Two projection searches of the local map (wide with the prior, tight with the refined pose), each
         followed by motion-only refinement (with the dense depth term of ``depth_m`` where it is used)."""
         config = self.config
@@ -312,7 +336,7 @@ class OrbFrontend:
             keypoints, ids, _ = match_map_points(self.map, point_ids, predicted, features, grid, self.camera, config,
                                                  radius_scale * config.search_radius_px)
         if len(ids) < config.min_inliers // 2:
-            return None, np.zeros(0, np.int64)
+            return None, np.zeros(0, np.int64), None
         dense = self._dense_term(depth_m, len(ids))
         with self._timed("pnp"):
             # As ORB-SLAM's TrackWithMotionModel: refine from the prior; PnP-RANSAC (about a third of the
@@ -329,10 +353,10 @@ class OrbFrontend:
             keypoints, ids, in_view = match_map_points(self.map, point_ids, fix.camera_from_world, features, grid,
                                                        self.camera, config, config.refine_radius_px)
         if len(ids) < config.min_inliers // 2:
-            return fix, in_view
+            return fix, in_view, dense
         with self._timed("pnp"):
             refined = refine_with_matches(fix.camera_from_world, features, keypoints, ids, self.map, self.K, config, dense)
-        return refined, in_view
+        return refined, in_view, dense
 
     def _relocalise(self, features: FrameFeatures, grid, depth_m: np.ndarray) -> tuple[PoseFix, np.ndarray] | None:
         """Bag-of-words candidates, each verified by :func:`localise`; then the local map around the winner, with the
@@ -350,7 +374,7 @@ class OrbFrontend:
                                self.config.relocalisation_min_inliers)
                 if fix is not None and fix.inlier_count >= self.config.relocalisation_min_inliers:
                     self._reference = keyframe
-                    tracked, in_view = self._track_local_map(features, grid, fix.camera_from_world, 1.0, depth_m)
+                    tracked, in_view, _ = self._track_local_map(features, grid, fix.camera_from_world, 1.0, depth_m)
                     if tracked is not None and tracked.inlier_count >= fix.inlier_count:
                         return tracked, in_view
                     return fix, np.zeros(0, np.int64)
