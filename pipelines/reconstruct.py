@@ -136,7 +136,8 @@ def reconstruct(
                     sequence.camera)
         atomic_write_text(output_dir / "config.yaml", to_yaml(config))
         frontend = make_frontend(config.frontend, sequence.camera)
-        mapping = MappingStage(sequence, config.mapper, config.bridge, run_log, device, config.seed) if config.mapper.enabled else None
+        mapping = MappingStage(sequence, config.mapper, config.bridge, run_log, device, config.seed,
+                               config.frontend.orb.rolling_shutter_s) if config.mapper.enabled else None
         logger.info("Gaussian map, bridge and rendering evaluation on %s", device if mapping is not None else "(mapper off)")
         # The run's clock started with the reading of the sequence, as end to end always has.
         counters = RunCounters(started_s=read_started)

@@ -1,24 +1,34 @@
-"""A rolling-shutter colour camera: keypoints moved to their frame's time against their exact twin, the synthetic
-sequence's rolling shutter against global-shutter renders, the camera file's key, and the frontend on a synthetic
-sequence whose rows are read over 33 ms."""
+"""A rolling-shutter colour camera: keypoints and images moved to their frame's time against their exact twins and
+global-shutter renders, the synthetic sequence's rolling shutter, the camera file's key, the frontend on a synthetic
+sequence whose rows are read over 33 ms, and the mapping stage's resampled images."""
+
+import dataclasses
 
 import numpy as np
 import pytest
 import yaml
 
+from tambridge.bridge.config import BridgeConfig
 from tambridge.camera import TUM_PRESETS, find_sensor, rolling_shutter_row_times_s
 from tambridge.errors import CameraConfigError
 from tambridge.evaluation.trajectory import evaluate_trajectory
+from tambridge.frontend.contract import TrackResult
 from tambridge.frontend.orb.config import OrbFrontendConfig
 from tambridge.frontend.orb.frontend import OrbFrontend
-from tambridge.frontend.orb.rolling_shutter import (
+from tambridge.images import rgb_uint8
+from tambridge.rolling_shutter import (
     camera_twist_per_s,
+    image_at_frame_time,
+    image_at_frame_time_reference,
     keypoints_at_frame_time,
     keypoints_at_frame_time_reference,
 )
 from tambridge.geometry import exp_se3, inverse, look_at
 from tambridge.io.synthetic import SynthOptions, default_camera, make_room_scene, render, render_rolling_shutter, write_synthetic_sequence
+from tambridge.gaussians.config import MapperConfig
 from tambridge.io.tum import open_sequence
+from tambridge.mapping.stage import MappingStage
+from tambridge.runlog import RunLog
 
 CAMERA = default_camera(160, 120)
 # A camera moving at about 1 m/s and turning at 1 rad/s: the twist per second (rho, phi), camera(t + s)_from_camera(t)
@@ -90,6 +100,25 @@ def test_moved_keypoints_are_where_the_camera_at_the_stamp_sees_their_points():
     np.testing.assert_allclose(moved, at_stamp, atol=0.05)
 
 
+def test_resampled_image_matches_its_twin_and_the_global_shutter_image():
+    """A rolling-shutter render of the synthetic room, resampled to the frame's time with the stamp's depth, is the
+    global-shutter render at the stamp (to the band quantisation and interpolation), far nearer than as taken."""
+    scene = make_room_scene()
+    world_from_stamp = look_at(np.array([-0.8, -0.2, 1.4]), np.array([2.0, 0.4, 0.9]))
+    sharp, depth = render(scene, CAMERA, world_from_stamp, supersampling=3)
+    rolling = rgb_uint8(render_rolling_shutter(
+        lambda dt, rows: render(scene, rows, world_from_camera_at(world_from_stamp, dt), supersampling=3)[0], CAMERA,
+        0.033))
+    resampled = image_at_frame_time(rolling, depth, CAMERA, TWIST_PER_S, 0.033)
+    np.testing.assert_allclose(resampled, image_at_frame_time_reference(rolling, depth, CAMERA, TWIST_PER_S, 0.033),
+                               atol=1)
+    np.testing.assert_array_equal(image_at_frame_time(rolling, depth, CAMERA, np.zeros(6), 0.033), rolling)
+    inner = (slice(8, -8), slice(8, -8))  # where the border pixels are not clamped
+    error_as_taken = np.abs(rolling[inner].astype(float) - rgb_uint8(sharp)[inner]).mean()
+    error_resampled = np.abs(resampled[inner].astype(float) - rgb_uint8(sharp)[inner]).mean()
+    assert error_resampled < 0.5 * error_as_taken
+
+
 def test_rolling_shutter_render_is_bands_of_global_renders():
     scene = make_room_scene()
     world_from_camera = look_at(np.array([-0.8, -0.2, 1.4]), np.array([2.0, 0.4, 0.9]))
@@ -137,3 +166,31 @@ def test_correction_lowers_the_error_of_a_rolling_shutter(tmp_path):
     global_shutter = ate_cm(0.0, None)
     assert corrected < 0.5 * as_global
     assert corrected < 1.5 * global_shutter
+
+
+def test_mapping_fits_images_resampled_by_the_tracked_motion(tmp_path):
+    """The mapping stage resamples a rolling-shutter frame by its motion from the frame tracked before it (the
+    ground truth here), towards the global-shutter image of its stamp; with ``mapper.rolling_shutter_images`` off,
+    with a readout of 0, or for the first frame (no motion yet) it keeps the frame as recorded."""
+    options = SynthOptions(frame_count=30, width=160, height=120, rolling_shutter_s=0.033)
+    write_synthetic_sequence(tmp_path / "rolling", options)
+    write_synthetic_sequence(tmp_path / "global", dataclasses.replace(options, rolling_shutter_s=0.0))
+    rolling, global_shutter = open_sequence(tmp_path / "rolling"), open_sequence(tmp_path / "global")
+
+    def stage_after_tracking(mapper: MapperConfig, readout_s: float) -> MappingStage:
+        stage = MappingStage(rolling, mapper, BridgeConfig(enabled=False), RunLog(tmp_path / "run.log"),
+                             rolling_shutter_s=readout_s)
+        for index, pose in enumerate(rolling.ground_truth.world_from_camera[:3]):
+            stage.on_tracked(TrackResult(index, rolling.timestamps_s[index], pose, True, False, 300), rolling[index])
+        return stage
+
+    stage = stage_after_tracking(MapperConfig(), 0.033)
+    assert sorted(stage.frame_twists) == [1, 2]
+    inner = (slice(8, -8), slice(8, -8))
+    for index in (1, 2):
+        error = lambda rgb: np.abs(rgb[inner].astype(float) - global_shutter[index].rgb[inner]).mean()  # noqa: E731
+        assert error(stage.at_frame_time(rolling[index]).rgb) < 0.35 * error(rolling[index].rgb)
+    np.testing.assert_array_equal(stage.at_frame_time(rolling[0]).rgb, rolling[0].rgb)
+    for unchanged in (stage_after_tracking(MapperConfig(rolling_shutter_images=False), 0.033),
+                      stage_after_tracking(MapperConfig(), 0.0)):
+        np.testing.assert_array_equal(unchanged.at_frame_time(rolling[2]).rgb, rolling[2].rgb)

@@ -98,6 +98,9 @@ class MapperConfig:
     densify_unmeasured: float = setting(0.5, "while mapping, each pixel of a view without measured depth where the "
                                              "map's silhouette is below this gets a Gaussian at the nearest measured "
                                              "depth (0: none)", UNIT)
+    rolling_shutter_images: bool = setting(True, "with a rolling-shutter camera (frontend.orb.rolling_shutter_s), "
+                                                 "the colour images the map is fitted to are first resampled to a "
+                                                 "global shutter at their frame's time by the tracked motion")
     lr_means_m: float = setting(5e-4, "Adam learning rate of the Gaussian centres (m)", POSITIVE)
     lr_rgb: float = setting(1e-2, "Adam learning rate of the colours", POSITIVE)
     lr_log_radii: float = setting(1e-2, "Adam learning rate of the log radii", POSITIVE)

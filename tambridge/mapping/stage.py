@@ -43,6 +43,7 @@ from tambridge.threads import TORCH_THREADS, compute_threads
 from tambridge.geometry import inverse, transform_points
 from tambridge.io.prefetch import ReadAhead
 from tambridge.io.tum import Frame, RgbdSequence
+from tambridge.rolling_shutter import camera_twist_per_s, image_at_frame_time
 from tambridge.runlog import RunLog
 from tambridge.trajectory import Trajectory
 
@@ -102,7 +103,7 @@ class MappingStage:
     """
 
     def __init__(self, sequence: RgbdSequence, mapper_config: MapperConfig, bridge_config: BridgeConfig, run_log: RunLog,
-                 device: torch.device = torch.device("cpu"), seed: int = 0) -> None:
+                 device: torch.device = torch.device("cpu"), seed: int = 0, rolling_shutter_s: float = 0.0) -> None:
         self.sequence = sequence
         self.mapper_config = mapper_config
         self.bridge_config = bridge_config
@@ -120,6 +121,12 @@ class MappingStage:
         self._recent: list[Candidate] = []
         # Every tracked frame's sharpness (bridge on), for the frames between the views that the sharpening pass fits.
         self.frame_sharpness: dict[int, float] = {}
+        # The colour camera's readout (s) the images are resampled over (0: as recorded), and every tracked frame's
+        # camera twist per second (rho, phi), from the frame tracked before it, to resample it with.
+        self.rolling_shutter_s = rolling_shutter_s if mapper_config.rolling_shutter_images else 0.0
+        self.frame_twists: dict[int, np.ndarray] = {}
+        self._last_tracked_index = -1
+        self._last_tracked_pose = np.eye(4)
         self.blur_exposure_s = blur_exposure_s(bridge_config, sequence)
         # Each view's latest count of renders over its exposure at the mapping resolution (for the metrics).
         self.subposes: dict[int, int] = {}
@@ -250,20 +257,39 @@ class MappingStage:
         if frame_index in self._cache:
             self._cache.move_to_end(frame_index)
             return self._cache[frame_index]
-        images = resize_frame(frame if frame is not None else self.sequence[frame_index], self.mapper_config.resolution_scale,
-                              self.device, self.sequence.valid_region)
+        images = resize_frame(self.at_frame_time(frame if frame is not None else self.sequence[frame_index]),
+                              self.mapper_config.resolution_scale, self.device, self.sequence.valid_region)
         self._cache[frame_index] = images
         while len(self._cache) > self.mapper_config.window_size + 1:
             self._cache.popitem(last=False)
         return images
 
+    def at_frame_time(self, frame: Frame) -> Frame:
+        """The frame with its colour resampled to a global shutter at its time (:func:`image_at_frame_time`) by its
+        tracked motion, with a rolling-shutter camera; as recorded otherwise, or where its motion is unknown."""
+        twist = self.frame_twists.get(frame.index)
+        if not self.rolling_shutter_s or twist is None:
+            return frame
+        return dataclasses.replace(frame, rgb=image_at_frame_time(frame.rgb, frame.depth_m, self.sequence.camera, twist,
+                                                                  self.rolling_shutter_s))
+
     # ---- online --------------------------------------------------------------------------------------------
 
     def on_tracked(self, result: TrackResult, frame: Frame, sharpness: float | None = None) -> None:
-        """Note a tracked frame (before its keyframe event, if it is a keyframe) as a candidate view of the next
-        keyframe; ``sharpness``: its :func:`tambridge.images.sharpness` where the read-ahead scored it."""
+        """Note a tracked frame (before its keyframe event, if it is a keyframe): its motion from the frame tracked
+        before it (for :meth:`at_frame_time`), and as a candidate view of the next keyframe; ``sharpness``: its
+        :func:`tambridge.images.sharpness` where the read-ahead scored it."""
+        if not result.tracked:
+            return
+        world_from_camera = np.asarray(result.world_from_camera, np.float64)
+        if self.rolling_shutter_s and self._last_tracked_index >= 0:
+            interval_s = float(self.sequence.timestamps_s[frame.index] - self.sequence.timestamps_s[self._last_tracked_index])
+            if interval_s > 0:
+                self.frame_twists[frame.index] = camera_twist_per_s(inverse(world_from_camera) @ self._last_tracked_pose,
+                                                                    interval_s)
+        self._last_tracked_index, self._last_tracked_pose = frame.index, world_from_camera
         bridge = self.bridge_config
-        if not result.tracked or not bridge.enabled:
+        if not bridge.enabled:
             return
         # The per-frame share of the bridge's cost (a score where the read-ahead gave none).
         score = frame_sharpness(frame.rgb) if sharpness is None else sharpness
@@ -543,7 +569,8 @@ class MappingStage:
         start, end = config.sharp_lr_scale_start, config.sharp_lr_scale_end
 
         def read(item: MappingView | FrameBetween) -> ViewImages:
-            return resize_frame(self.sequence[item.frame_index], scales[type(item)], self.device, self.sequence.valid_region)
+            return resize_frame(self.at_frame_time(self.sequence[item.frame_index]), scales[type(item)], self.device,
+                                self.sequence.valid_region)
 
         for round_index in range(config.sharp_iterations_per_view):
             chunks = self.view_chunks()

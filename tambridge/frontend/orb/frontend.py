@@ -5,7 +5,7 @@ time by the constant-velocity prior: :mod:`~tambridge.frontend.orb.depth_time`) 
 projected with the constant-velocity prior and matched by descriptor near their projection -> motion-only
 refinement with a Huber kernel from the prior (PnP-RANSAC only if the prior leaves most matches outliers) -> a
 second, tighter projection search and refinement (with a rolling shutter, a third after the keypoints are moved
-from their rows' times to the frame's by the frame's own motion: :mod:`~tambridge.frontend.orb.rolling_shutter`).
+from their rows' times to the frame's by the frame's own motion: :mod:`~tambridge.rolling_shutter`).
 Tracking a frame decides whether it becomes a keyframe
 (ORB-SLAM2's rules); a keyframe adds map points from its depth, culls bad recent points, fuses duplicates (points keep their most distinctive
 descriptor), runs local BA, and looks for a loop (bag of words, candidates consistent over consecutive
@@ -61,7 +61,7 @@ from tambridge.frontend.orb.map_matching import PoseFix, localise, match_map_poi
 from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.orb.features import FrameFeatures, OrbExtractor
 from tambridge.frontend.orb.pose_estimation import solve_pnp_ransac
-from tambridge.frontend.orb.rolling_shutter import camera_twist_per_s, keypoints_at_frame_time
+from tambridge.rolling_shutter import camera_twist_per_s, keypoints_at_frame_time
 from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 from tambridge.frontend.contract import FrontendResult, KeyframeEvent, MapPointObservations, TrackResult, empty_timings
 from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, scaled_for_image
@@ -260,7 +260,7 @@ class OrbFrontend:
     def _refined_at_frame_time(self, frame: Frame, features: FrameFeatures, fix: PoseFix,
                                camera_from_world_last: np.ndarray, dense: DenseTerm | None) -> tuple[FrameFeatures, PoseFix]:
         """With a rolling shutter (``rolling_shutter_s``), the keypoints moved from their rows' times to the frame's
-        (:mod:`~tambridge.frontend.orb.rolling_shutter`) by the frame's own motion from the last frame to ``fix``,
+        (:mod:`~tambridge.rolling_shutter`) by the frame's own motion from the last frame to ``fix``,
         their depth and colour read again there, and the pose refined once more from ``fix`` on its inliers (with
         the same ``dense`` term). As given with a global shutter or a still camera."""
         current_from_last = fix.camera_from_world @ inverse(camera_from_world_last)
