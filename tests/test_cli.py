@@ -148,6 +148,18 @@ def test_synth_writes_a_supersampled_sequence_and_refuses_an_even_factor(tmp_pat
     assert refused.exit_code == 2 and "must be odd" in refused.output
 
 
+def test_synth_writes_a_rolling_shutter_and_refuses_one_longer_than_a_frame(tmp_path):
+    runner = CliRunner()
+    result = runner.invoke(main, ["synth", str(tmp_path / "r"), "--frames", "2", "--size", "32x24",
+                                  "--rolling-shutter", "0.02"])
+    assert result.exit_code == 0, result.output
+    assert open_sequence(tmp_path / "r").camera.rolling_shutter_s == 0.02
+    refused = runner.invoke(main, ["synth", str(tmp_path / "long"), "--rolling-shutter", "0.05"])
+    assert refused.exit_code == 2
+    assert refused.output == "error: synthetic sequence: rolling shutter readout 0.05 s: must be in [0, 1/fps = 0.03333] s\n"
+    assert not (tmp_path / "long").exists()
+
+
 def test_report_of_a_folder_without_current_metrics_exits_with_one_line(tmp_path):
     (tmp_path / "metrics.json").write_text(json.dumps({"frames": 3}))  # an older tambridge's file
     result = CliRunner().invoke(main, ["report", str(tmp_path)])

@@ -11,7 +11,8 @@ ROOT = Path(__file__).resolve().parent.parent
 LAYERS = [
     ("tambridge.errors", "tambridge.settings"),
     ("tambridge.files", "tambridge.state", "tambridge.threads", "tambridge.geometry", "tambridge.images"),
-    ("tambridge.camera", "tambridge.trajectory", "tambridge.runlog", "tambridge.stop", "tambridge.run_folder"),
+    ("tambridge.camera", "tambridge.rolling_shutter", "tambridge.trajectory", "tambridge.runlog", "tambridge.stop",
+     "tambridge.run_folder"),
     ("tambridge.io",),
     ("tambridge.frontend",),
     ("tambridge.gaussians",),
