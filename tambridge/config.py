@@ -22,7 +22,7 @@ from tambridge.checkpoint import CheckpointConfig
 from tambridge.evaluation.config import EvaluationConfig
 from tambridge.export.config import ExportConfig, MeshConfig
 from tambridge.frontend.config import FrontendConfig
-from tambridge.frontend.orb.config import scaled_for_image
+from tambridge.frontend.orb.config import for_camera
 from tambridge.gaussians.config import MapperConfig
 from tambridge.io.config import InputConfig
 from tambridge.settings import NON_NEGATIVE, Choice, Device, section, setting
@@ -217,11 +217,9 @@ def describe_config(config: Config) -> list[str]:
 
 
 def config_for_camera(config: Config, camera: "Camera") -> Config:
-    """``config`` with the values a run on ``camera`` uses: the ORB settings adapted to its image size by
-    :func:`~tambridge.frontend.orb.config.scaled_for_image`, with ``scale_with_image`` off, and its rolling-shutter
-    readout where ``frontend.orb.rolling_shutter_s`` is null, so that these values, written to config.yaml and
-    loaded again, give the same run. ``config`` itself is not changed."""
-    orb = dataclasses.replace(scaled_for_image(config.frontend.orb, camera.width, camera.height), scale_with_image=False)
-    if orb.rolling_shutter_s is None:
-        orb = dataclasses.replace(orb, rolling_shutter_s=camera.rolling_shutter_s)
+    """``config`` with the values a run on ``camera`` uses: the ORB settings adapted to its image size and
+    rolling-shutter readout by :func:`~tambridge.frontend.orb.config.for_camera`, with ``scale_with_image`` off so
+    that these values, written to config.yaml and loaded again, give the same run. ``config`` itself is not
+    changed."""
+    orb = dataclasses.replace(for_camera(config.frontend.orb, camera), scale_with_image=False)
     return dataclasses.replace(config, frontend=dataclasses.replace(config.frontend, orb=orb))

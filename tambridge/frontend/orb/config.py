@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import typing
 
 import numpy as np
 
 from tambridge.settings import FRACTION, NON_NEGATIVE, POSITIVE, UNIT, Choice, Range, at_least, setting
+
+if typing.TYPE_CHECKING:
+    from tambridge.camera import Camera
 
 
 class DenseDepthUse(Choice):
@@ -192,3 +196,12 @@ def scaled_for_image(config: OrbFrontendConfig, width: int, height: int) -> OrbF
         dense_reference_stride_px=max(1, int(round(config.dense_reference_stride_px * factor * factor))),
         dense_sample_stride_px=max(1, int(round(config.dense_sample_stride_px * factor * factor))),
     )
+
+
+def for_camera(config: OrbFrontendConfig, camera: "Camera") -> OrbFrontendConfig:
+    """``config`` as the frontend runs it on ``camera``: :func:`scaled_for_image` to its size, and its
+    rolling-shutter readout where ``rolling_shutter_s`` is null."""
+    config = scaled_for_image(config, camera.width, camera.height)
+    if config.rolling_shutter_s is None:
+        config = dataclasses.replace(config, rolling_shutter_s=camera.rolling_shutter_s)
+    return config

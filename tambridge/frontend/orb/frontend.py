@@ -64,7 +64,7 @@ from tambridge.frontend.orb.pose_estimation import solve_pnp_ransac
 from tambridge.rolling_shutter import camera_twist_per_s, keypoints_at_frame_time
 from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 from tambridge.frontend.contract import FrontendResult, KeyframeEvent, MapPointObservations, TrackResult, empty_timings
-from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, scaled_for_image
+from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, for_camera
 from tambridge.frontend.orb.vocabulary import KeyframeDatabase, Vocabulary
 from tambridge.geometry import inverse
 from tambridge.io.tum import Frame
@@ -102,9 +102,7 @@ class OrbFrontend:
     ) -> None:
         self.camera = camera
         # A fresh default each time: the config dataclasses are mutable (``--set`` writes into them).
-        self.config = scaled_for_image(config if config is not None else OrbFrontendConfig(), camera.width, camera.height)
-        if self.config.rolling_shutter_s is None:
-            self.config = dataclasses.replace(self.config, rolling_shutter_s=camera.rolling_shutter_s)
+        self.config = for_camera(config if config is not None else OrbFrontendConfig(), camera)
         self.K = camera.K
         self.map = SlamMap()
         self.extractor = OrbExtractor(camera, self.config)
