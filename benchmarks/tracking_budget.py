@@ -93,8 +93,11 @@ def threaded_run(folder: Path, camera_file: Path | None, max_frames: int | None)
             command += ["--max-frames", str(max_frames)]
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         started = time.perf_counter()
-        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+        child = subprocess.run(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         wall_s = time.perf_counter() - started
+        if child.returncode != 0:
+            last = (child.stderr.strip().splitlines() or ["no message"])[-1]
+            raise SystemExit(f"error: {folder}: the tracking-only run failed (exit {child.returncode}): {last}")
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
         metrics = json.loads((Path(output) / "metrics.json").read_text())
     cpu_s = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
