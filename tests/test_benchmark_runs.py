@@ -109,13 +109,10 @@ def test_turns_benchmark_tracks_a_segment_as_a_sequence_of_its_own(synthetic_seq
 
 
 @pytest.mark.slow
-def test_tracking_budget_splits_the_cpu_per_frame_and_runs_the_pipeline(synthetic_sequence_dir, tmp_path):
-    output = tmp_path / "budget.json"
-    child = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "tracking_budget.py"), "--sequence",
-                            str(synthetic_sequence_dir), "--max-frames", "12", "--runs", "1", "--output", str(output)],
-                           cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert child.returncode == 0, child.stderr[-3000:]
-    row = json.loads(output.read_text())
+def test_tracking_budget_splits_the_cpu_per_frame_and_runs_the_pipeline(synthetic_sequence_dir):
+    from benchmarks.tracking_budget import budget, format_table, threaded_run
+
+    row = budget(synthetic_sequence_dir, None, 12)
     stages = row["cpu_ms_per_frame"]
     assert set(stages) == {"reading", "extraction", "tracking", "mapping_thread"}
     assert all(value > 0 for value in stages.values())
@@ -123,7 +120,8 @@ def test_tracking_budget_splits_the_cpu_per_frame_and_runs_the_pipeline(syntheti
     assert row["fps_bound"] == pytest.approx(row["cores"] * 1e3 / row["cpu_ms_per_frame_total"])
     # The inline budget run and the threaded CLI run both track the first 12 frames of the noise-free 160x120 loop.
     assert row["frames"] == 12 and row["ate_cm_inline"] < 2.0
-    (run,) = row["threaded_runs"]
+    run = threaded_run(synthetic_sequence_dir, None, 12)
     assert run["fps_end_to_end"] > 0 and run["ate_cm"] < 2.0
     assert 0 < run["cores_busy"] <= row["cores"] + 0.5
-    assert "| reading ms |" in child.stdout
+    row["threaded_runs"] = [run]
+    assert format_table(row).splitlines()[0].startswith("| reading ms |")
