@@ -34,6 +34,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.dense_tracking import orb_config  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.sequences import DATA_FOLDERS, FR1_XYZ, camera_file_for, find_sequence  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
@@ -44,7 +45,6 @@ MAPPING_THREAD_STAGES = ("local_ba", "loop", "global_ba")
 
 def budget(folder: Path, camera_file: Path | None, max_frames: int | None) -> dict:
     """CPU ms per frame of each stage, everything in this thread (see the module docstring)."""
-    from tambridge.config import load_config
     from tambridge.evaluation.trajectory import evaluate_trajectory
     from tambridge.frontend.orb.frontend import OrbFrontend
     from tambridge.images import sharpness
@@ -52,8 +52,7 @@ def budget(folder: Path, camera_file: Path | None, max_frames: int | None) -> di
 
     sequence = open_sequence(folder, camera_file=camera_file)
     frames = len(sequence) if max_frames is None else min(max_frames, len(sequence))
-    config = load_config(None, ["frontend.orb.mapping_thread=false"]).frontend.orb
-    frontend = OrbFrontend(sequence.camera, config)
+    frontend = OrbFrontend(sequence.camera, orb_config(["mapping_thread=false"]))
     reading_s = extraction_s = tracking_s = 0.0
     for index in range(frames):
         started = time.thread_time()

@@ -125,7 +125,7 @@ class MappingStage:
         # camera twist per second (rho, phi), from the frame tracked before it, to resample it with.
         self.rolling_shutter_s = rolling_shutter_s if mapper_config.rolling_shutter_images else 0.0
         self.frame_twists: dict[int, np.ndarray] = {}
-        self._last_tracked_index = -1
+        self._last_tracked_timestamp_s: float | None = None
         self._last_tracked_pose = np.eye(4)
         self.blur_exposure_s = blur_exposure_s(bridge_config, sequence)
         # Each view's latest count of renders over its exposure at the mapping resolution (for the metrics).
@@ -282,12 +282,12 @@ class MappingStage:
         if not result.tracked:
             return
         world_from_camera = np.asarray(result.world_from_camera, np.float64)
-        if self.rolling_shutter_s and self._last_tracked_index >= 0:
-            interval_s = float(self.sequence.timestamps_s[frame.index] - self.sequence.timestamps_s[self._last_tracked_index])
+        if self.rolling_shutter_s and self._last_tracked_timestamp_s is not None:
+            interval_s = frame.timestamp_s - self._last_tracked_timestamp_s
             if interval_s > 0:
                 self.frame_twists[frame.index] = camera_twist_per_s(inverse(world_from_camera) @ self._last_tracked_pose,
                                                                     interval_s)
-        self._last_tracked_index, self._last_tracked_pose = frame.index, world_from_camera
+        self._last_tracked_timestamp_s, self._last_tracked_pose = frame.timestamp_s, world_from_camera
         bridge = self.bridge_config
         if not bridge.enabled:
             return
