@@ -289,23 +289,16 @@ def restore_before_the_pass(mapping, before: dict) -> None:
 
 
 def variant_scores(mapping, before: dict, mapper_config, poses: np.ndarray, frames: list[int]) -> dict:
-    """The sharpening pass again from the map ``before`` it, with ``mapper_config``, then the prune and the refit of
-    the exposures that end ``MappingStage.finish``; scored through the exposures and as exported. The stage keeps
-    its own config afterwards (its map is the variant's)."""
+    """The end of ``MappingStage.finish`` (the sharpening pass, the prune, the map's colours) again from the map
+    ``before`` the pass, with ``mapper_config``; scored through the exposures and as exported. The stage keeps its
+    own config afterwards (its map is the variant's)."""
     from tambridge.evaluation.mapping import score_views
 
     own = mapping.mapper_config
     restore_before_the_pass(mapping, before)
     mapping.mapper_config = mapping.map.config = mapper_config
     started = time.perf_counter()
-    with mapping.threads():
-        if mapper_config.sharp_iterations_per_view:
-            mapping.sharpen(before["frames_between"])
-        mapping.final_prune()
-        if mapping.fits_frames_as_recorded:
-            mapping.refit_exposures()
-        else:
-            mapping.anchor_exposures()
+    mapping.sharpen_prune_and_set_colours(before["frames_between"])
     seconds = time.perf_counter() - started
     mapping.mapper_config = mapping.map.config = own
     scores = score_views(mapping, poses, frames).summary()

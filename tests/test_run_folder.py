@@ -152,15 +152,25 @@ def test_a_tampered_manifest_cannot_remove_files_outside_the_folder(tmp_path):
     assert (tmp_path / "precious.txt").read_text() == "keep"
 
 
+# The stop comes while tracking: the sharpening pass after it is not what is tested.
+STOPPED_OPTIONS = [option for option in FAST if not option.startswith("input.")] + ["mapper.sharp_iterations_per_view=0"]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_trajectory(synthetic_sequence_dir, tmp_path_factory) -> np.ndarray:
+    """trajectory.txt of the synthetic loop reconstructed with :data:`STOPPED_OPTIONS`, without a stop."""
+    full = tmp_path_factory.mktemp("uninterrupted") / "full"
+    reconstruct(synthetic_sequence_dir, full, load_config(None, STOPPED_OPTIONS), progress=False)
+    return np.loadtxt(full / "trajectory.txt")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("signum, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_a_signal_writes_a_checkpoint_and_resume_ends_as_an_uninterrupted_run(synthetic_sequence_dir, tmp_path,
-                                                                               signum, status):
-    out, full = tmp_path / "stopped", tmp_path / "full"
-    # The stop comes while tracking: the sharpening pass after it is not what is tested.
-    options = [option for option in FAST if not option.startswith("input.")] + ["mapper.sharp_iterations_per_view=0"]
+                                                                               uninterrupted_trajectory, signum, status):
+    out = tmp_path / "stopped"
     command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(synthetic_sequence_dir), "-o", str(out),
-               "--quiet", *_set(options)]
+               "--quiet", *_set(STOPPED_OPTIONS)]
     child = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                              env=dict(os.environ, PYTHONPATH=str(ROOT)))
     deadline = time.monotonic() + 300
@@ -178,10 +188,10 @@ def test_a_signal_writes_a_checkpoint_and_resume_ends_as_an_uninterrupted_run(sy
     assert f"run stopped: RunStopped: stopped by {signal.Signals(signum).name}" in log
     assert checkpoint_path(out).is_file() and not (out / "metrics.json").exists()
 
-    resumed = _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--resume", *_set(options)])
+    resumed = _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--resume",
+                    *_set(STOPPED_OPTIONS)])
     assert resumed.exit_code == 0, resumed.output
-    reconstruct(synthetic_sequence_dir, full, load_config(None, options), progress=False)
-    np.testing.assert_array_equal(np.loadtxt(out / "trajectory.txt"), np.loadtxt(full / "trajectory.txt"))
+    np.testing.assert_array_equal(np.loadtxt(out / "trajectory.txt"), uninterrupted_trajectory)
 
 
 def test_ground_truth_on_another_clock_leaves_the_results_and_says_why(synthetic_sequence_dir, tmp_path):

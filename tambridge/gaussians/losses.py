@@ -112,10 +112,9 @@ def map_loss(
     pixels and channels; where frames disagree on a surface's colour it pulls towards their mean, which is what
     PSNR rewards, where L1 settles on their median.
     """
-    valid_depth = observed_depth_m > 0
-    everywhere = torch.ones_like(valid_depth)
-    l1_depth = masked_l1(rendered_depth_m, observed_depth_m, valid_depth)
-    colour = w_colour * masked_l1(rendered_rgb, observed_rgb, everywhere)
+    l1_depth = masked_l1(rendered_depth_m, observed_depth_m, observed_depth_m > 0)
+    colour_difference = rendered_rgb - observed_rgb
+    colour = w_colour * colour_difference.abs().mean()
     if w_colour_squared:
-        colour = colour + w_colour_squared * (rendered_rgb - observed_rgb).square().mean()
+        colour = colour + w_colour_squared * colour_difference.square().mean()
     return (1.0 - zeta) * (w_depth * l1_depth + colour) + zeta * (1.0 - ssim(rendered_rgb, observed_rgb))

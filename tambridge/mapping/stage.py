@@ -500,9 +500,16 @@ class MappingStage:
                 views = [self.posed_images(v, self.images(v.frame_index)) for v in chunk]
                 steps = [self.mapper_config.final_iterations_per_view * self.steps_factor(v) for v in chunk]
                 self.map.optimise(self.camera, views, round_robin(steps), self.exposures(chunk))
+        frames_between = [] if tracking is None or not self.mapper_config.sharp_iterations_per_view else \
+            self.frames_between(tracking, held_out)
+        self.sharpen_prune_and_set_colours(frames_between)
+
+    def sharpen_prune_and_set_colours(self, frames_between: list[FrameBetween]) -> None:
+        """The end of :meth:`finish`, after the final refinement: the sharpening pass over the views and
+        ``frames_between`` (where ``mapper.sharp_iterations_per_view``), the prune, then the map's colours."""
         if self.mapper_config.sharp_iterations_per_view:
             with self.run_log.stage("sharpening"), self.threads():
-                self.sharpen([] if tracking is None else self.frames_between(tracking, held_out))
+                self.sharpen(frames_between)
         if self.views:
             with self.run_log.stage("final_refinement"):
                 removed = self.final_prune()
