@@ -49,12 +49,13 @@ def test_sharp_splats_scores_the_map_before_and_after_the_pass_its_ceiling_and_l
     assert ceiling["gaussians"] == row["on"]["gaussians"] + ceiling["gaussians_added"]
     assert ceiling["psnr_exp"] > row["on"]["psnr_exp"] + 0.5 and ceiling["ssim_exp"] > row["on"]["ssim_exp"]
     # The limits are scored on the run's final map: as exported they are "on"'s; the best gain and bias of a frame
-    # include the identity, so they never score lower; the refinement keeps the lowest loss it saw, centimetres away
-    # at most at the 40x30 mapping resolution.
+    # include the identity, so they never score lower; the refinement keeps the lowest loss it saw, which on these
+    # drifting poses lies away from the start, centimetres away at most at the 40x30 mapping resolution.
     limits = row["limits"]
     assert limits["psnr_exp"] == pytest.approx(row["on"]["psnr_exp"], abs=1e-6)
     assert limits["psnr_affine"] >= limits["psnr_exp"]
-    assert abs(limits["psnr_pose"] - limits["psnr_exp"]) < 1.0 and 0 <= limits["pose_moved_mm"] < 50
+    assert 0 < limits["pose_moved_mm"] < 50 and limits["psnr_pose"] != limits["psnr_exp"]
+    assert abs(limits["psnr_pose"] - limits["psnr_exp"]) < 1.0
 
 
 def kernel_benchmark_rows(script: str, arguments: list[str], tmp_path: Path) -> list[dict]:

@@ -99,8 +99,8 @@ def test_killed_run_resumes_to_the_uninterrupted_result(synthetic_sequence_dir, 
     resumed = np.loadtxt(killed_dir / "trajectory.txt")
     uninterrupted = np.loadtxt(full_dir / "trajectory.txt")
     assert resumed.shape == uninterrupted.shape == (sequence_length, 8)
-    np.testing.assert_array_equal(resumed[:, 0], uninterrupted[:, 0])
-    assert np.abs(resumed[:, 1:4] - uninterrupted[:, 1:4]).max() < 1e-3  # metres
+    # Inline mapping is deterministic, and a checkpoint holds every state the run carries across frames.
+    np.testing.assert_array_equal(resumed, uninterrupted)
     metrics = read_metrics(killed_dir / "metrics.json")
     assert metrics.keyframes == full.metrics.keyframes
     assert metrics.frames == sequence_length
@@ -366,14 +366,17 @@ def test_orb_frontend_with_mapping_thread_checkpoints_between_frames(synthetic_s
     first.finish()
     second = OrbFrontend(sequence.camera, config)
     second.load_state_dict(load_checkpoint(path).frontend)
-    keyframes_before = len(second.map.keyframes)
+    frames_of_keyframes_before = [keyframe.frame_index for keyframe in second.map.keyframes]
     # Shared objects stay shared: the reference keyframe is the map's own.
     assert any(second._reference is keyframe for keyframe in second.map.keyframes)
     for index in range(8, len(sequence)):
         second.track(sequence[index])
     result = second.finish()
     assert len(result.trajectory.timestamps_s) == len(sequence)
-    assert len(result.keyframe_trajectory.timestamps_s) >= keyframes_before
+    # The restored keyframes stay, and the frames after the checkpoint add more (the loop turns 12 degrees a frame).
+    frames_of_keyframes = list(result.keyframe_frame_indices.values())
+    assert frames_of_keyframes[:len(frames_of_keyframes_before)] == frames_of_keyframes_before
+    assert len(frames_of_keyframes) > len(frames_of_keyframes_before)
     errors = evaluate_trajectory(result.trajectory, sequence.ground_truth)
     # As an uninterrupted run of these frames with the mapping thread (whose timing varies the result a little).
-    assert errors.ate_rmse_m < 0.05
+    assert errors.ate_rmse_m < 0.015

@@ -117,17 +117,21 @@ def test_download_fetches_and_unpacks_from_a_local_mirror(synthetic_sequence_dir
 def test_atomic_writes_leave_no_temp_files_and_normal_permissions(tmp_path):
     import os
 
-    from tambridge.files import atomic_write_text
+    from tambridge.files import atomic_path, atomic_write_text
 
     target = tmp_path / "result.txt"
     atomic_write_text(target, "whole")
-    with pytest.raises(RuntimeError):
-        from tambridge.files import atomic_path
-
-        with atomic_path(tmp_path / "partial.txt") as temp_path:
-            temp_path.write_text("half")
-            raise RuntimeError("killed mid-write")
+    assert target.read_text() == "whole"
+    # A write that fails half-way leaves neither a new file nor a change to an existing one.
+    for path in (tmp_path / "partial.txt", target):
+        with pytest.raises(RuntimeError, match="killed mid-write"):
+            with atomic_path(path) as temp_path:
+                temp_path.write_text("half")
+                raise RuntimeError("killed mid-write")
+    assert target.read_text() == "whole"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.txt"]
+    atomic_write_text(target, "again")
+    assert target.read_text() == "again"
     umask = os.umask(0)
     os.umask(umask)
     assert target.stat().st_mode & 0o777 == 0o666 & ~umask

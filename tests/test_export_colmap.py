@@ -110,17 +110,28 @@ def test_colmap_model_reads_back_with_the_run_poses_intrinsics_and_tracks(run_di
                                                          sparse_map.observations.point_rows,
                                                          sparse_map.observations.keypoints_px)}
     positions = {tuple(p) for p in np.round(sparse_map.points_world_m, 9)}
-    checked = 0
+    frame_rgb = {}
+    checked, coloured_as_seen = 0, 0
     for point in model.points3D.values():
         assert tuple(np.round(point.xyz, 9)) in positions
         assert point.track.length() == 0 or point.track.length() >= 2
+        row = int(np.flatnonzero((sparse_map.points_world_m == point.xyz).all(axis=1))[0])
+        np.testing.assert_array_equal(point.color, sparse_map.point_colours[row])
+        seen_colours = []
         for element in point.track.elements:
             image = model.images[element.image_id]
-            row = int(np.flatnonzero((sparse_map.points_world_m == point.xyz).all(axis=1))[0])
-            keypoint = observed[(keyframe_of_frame[int(image.name[:6])], row)]
+            frame = int(image.name[:6])
+            keypoint = observed[(keyframe_of_frame[frame], row)]
             assert np.allclose(image.points2D[element.point2D_idx].xy, keypoint + COLMAP_PIXEL_OFFSET, atol=1e-12)
+            if frame not in frame_rgb:
+                frame_rgb[frame] = sequence[frame].rgb
+            column, image_row = np.round(keypoint).astype(int)
+            seen_colours.append(frame_rgb[frame][image_row, column])
             checked += 1
+        # A point takes its colour from the keyframe that made it, at its keypoint there.
+        coloured_as_seen += any(np.array_equal(point.color, colour) for colour in seen_colours)
     assert checked == model.compute_num_observations() > 2 * model.num_points3D()
+    assert coloured_as_seen >= 0.9 * sum(point.track.length() > 0 for point in model.points3D.values())
     errors = _reprojection_errors_px(model)
     assert np.median(errors) < 2.0, np.median(errors)
     for name in ("cameras", "images", "points3D"):

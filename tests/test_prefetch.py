@@ -42,10 +42,13 @@ def _prefetch_threads() -> list[threading.Thread]:
 @pytest.mark.parametrize("start", [0, 3, 7])
 def test_frames_come_in_order_from_the_start_with_what_prepare_made(start):
     frames = _Frames(7)
-    with FramePrefetcher(frames, start, prepare=lambda frame: frame.index * 10) as prefetcher:
+    prepare = lambda frame: (frame.index * 10, threading.current_thread().name)  # noqa: E731
+    with FramePrefetcher(frames, start, prepare=prepare) as prefetcher:
         got = list(prefetcher)
     assert [frame.index for frame, _ in got] == list(range(start, 7))
-    assert [prepared for _, prepared in got] == [10 * i for i in range(start, 7)]
+    assert [prepared for _, (prepared, _) in got] == [10 * i for i in range(start, 7)]
+    # Prepared in its own worker thread, beside the reader's.
+    assert all(thread.startswith("tambridge-prefetch-prepare") for _, (_, thread) in got)
     assert all(frame.rgb[0, 0, 0] == frame.index for frame, _ in got)
     # Every frame read once, all of them in the worker thread.
     assert len(frames.readers) == 7 - start

@@ -10,7 +10,7 @@ import yaml
 
 from tambridge.bridge.config import BridgeConfig
 from tambridge.camera import TUM_PRESETS, find_sensor, rolling_shutter_row_times_s
-from tambridge.errors import CameraConfigError
+from tambridge.errors import CameraConfigError, ConfigError
 from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.frontend.contract import TrackResult
 from tambridge.frontend.orb.config import OrbFrontendConfig
@@ -141,7 +141,7 @@ def test_camera_file_gives_the_readout(tmp_path):
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump(values))
     with pytest.raises(CameraConfigError, match="bad.yaml: rolling_shutter_s -0.01 must be in"):
         find_sensor(tmp_path / "rs", tmp_path / "bad.yaml")
-    with pytest.raises(Exception, match="rolling shutter readout 0.05 s"):
+    with pytest.raises(ConfigError, match="rolling shutter readout 0.05 s"):
         SynthOptions(rolling_shutter_s=0.05)
 
 

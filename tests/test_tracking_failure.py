@@ -65,5 +65,5 @@ def test_run_counts_lost_frames_and_recovers(synthetic_sequence_dir, tmp_path):
     ground_truth = open_sequence(folder).ground_truth
     good = np.setdiff1d(np.arange(len(damaged.trajectory.timestamps_s)), NO_DEPTH + BLACK)
     after = good[good > max(BLACK)]
-    assert _ate_m(damaged.trajectory, ground_truth, good) < _ate_m(clean.trajectory, ground_truth, good) + 0.03
-    assert _ate_m(damaged.trajectory, ground_truth, after) < _ate_m(clean.trajectory, ground_truth, after) + 0.03
+    assert _ate_m(damaged.trajectory, ground_truth, good) < _ate_m(clean.trajectory, ground_truth, good) + 0.005
+    assert _ate_m(damaged.trajectory, ground_truth, after) < _ate_m(clean.trajectory, ground_truth, after) + 0.005

@@ -72,7 +72,7 @@ def test_association_skips_poses_without_a_partner():
     "text, message",
     [
         ("1.0 0 0 0 0 0 0\n", "line 1: expected 8 columns"),
-        ("1.0 0 0 0 0 0 0 x\n", "line 1"),
+        ("1.0 0 0 0 0 0 0 x\n", "line 1: could not convert string to float"),
         ("# only a comment\n", "no poses"),
         ("1.0 0 0 0 0 0 0 0\n", "zero quaternion"),
         ("1.0 nan 0 0 0 0 0 1\n", "non-finite"),
