@@ -329,7 +329,6 @@ class KeyframeCheckpoints:
         self.min_interval_s = min_interval_s
         self.snapshot = snapshot
         self.keyframes = keyframes_so_far
-        self.written = 0
         self._keyframes_at_last = keyframes_so_far
         self._time_of_last = time.perf_counter()
 
@@ -344,7 +343,6 @@ class KeyframeCheckpoints:
     def write(self, next_frame: int) -> None:
         """Write a checkpoint now (frames ``[0, next_frame)`` tracked and mapped)."""
         size = save_checkpoint(self.path, self.snapshot(next_frame))
-        self.written += 1
         self._keyframes_at_last, self._time_of_last = self.keyframes, time.perf_counter()
         logger.info("checkpoint at frame %d (%d keyframes): %s, %.1f MB", next_frame, self.keyframes, self.path,
                     size / 1e6)

@@ -114,15 +114,14 @@ class BundleOptions:
 
 @dataclasses.dataclass
 class BundleSolution:
-    """Refined ``camera_from_world`` (C, 4, 4) and ``points_world`` (P, 3); ``chi2`` (O,) per observation at the
-    solution and ``outliers`` (O,) beyond the chi2 95% quantile (or behind the camera)."""
+    """Refined ``camera_from_world`` (C, 4, 4) and ``points_world`` (P, 3), the robust cost before and after, and
+    ``outliers`` (O,): the observations whose chi2 at the solution lies beyond the 95% quantile (or behind the
+    camera)."""
 
     camera_from_world: np.ndarray
     points_world: np.ndarray
     initial_cost: float
     final_cost: float
-    iterations: int
-    chi2: np.ndarray
     outliers: np.ndarray
 
 
@@ -362,8 +361,7 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
     cost = _cost(problem, camera_from_world, points_world, weights, thresholds, options.robust)
     initial_cost = cost
     damping = options.initial_damping
-    iteration = 0
-    for iteration in range(1, options.iterations + 1):
+    for _ in range(options.iterations):
         h_cc, b_c, h_pp, b_p, h_cp = _linearise_kernel(
             np.ascontiguousarray(camera_from_world[:, :3, :3]), np.ascontiguousarray(camera_from_world[:, :3, 3]),
             points_world, problem.observation_camera, problem.observation_point, problem.observations, weights,
@@ -407,7 +405,5 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
         points_world=points_world,
         initial_cost=initial_cost,
         final_cost=cost,
-        iterations=iteration,
-        chi2=final_chi2,
         outliers=~(final_chi2 <= thresholds),
     )
