@@ -10,8 +10,6 @@ import yaml
 from click.testing import CliRunner
 
 from cli import main
-from tambridge.config import load_config
-from tambridge.errors import ConfigError
 from tambridge.evaluation.metrics import read_metrics
 from tambridge.io.tum import open_sequence
 from tambridge.trajectory import read_tum_trajectory
@@ -71,16 +69,21 @@ def test_evaluate_prints_a_table_and_writes_a_plot(synthetic_sequence_dir, tmp_p
     assert json.loads((tmp_path / "m.json").read_text())["ate_rmse_m"] < 1e-9
 
 
-def test_config_overrides_and_errors(tmp_path):
+def test_reconstruct_refuses_a_bad_setting_in_one_line_before_writing(synthetic_sequence_dir, tmp_path):
+    """What load_config refuses (tests/test_config.py) reaches the user as one line, before any output exists."""
     preset = tmp_path / "p.yaml"
-    preset.write_text("mapper:\n  iterations: 7\nbridge:\n  enabled: false\n")
-    config = load_config(preset, ["mapper.iterations=9", "input.max_frames=null"])
-    assert config.mapper.iterations == 9 and config.bridge.enabled is False and config.input.max_frames is None
-    assert config.bridge.alpha == 0.75 and config.mapper.zeta == 0.3  # paper defaults survive
-    with pytest.raises(ConfigError, match="unknown config key 'mapper.iteration'"):
-        load_config(None, ["mapper.iteration=3"])
-    with pytest.raises(ConfigError, match="mapper.iterations: expected int"):
-        load_config(None, ["mapper.iterations=many"])
+    preset.write_text("mapper:\n  iterations: 7\n")
+    for arguments, message in ((["--set", "mapper.iteration=3"], "error: unknown config key 'mapper.iteration'; known "
+                                "keys here: enabled, "),
+                               (["--config", str(preset), "--set", "mapper.iterations=many"],
+                                "error: mapper.iterations: expected int"),
+                               (["--config", str(tmp_path / "missing.yaml")],
+                                f"error: {tmp_path / 'missing.yaml'}: config file not found; presets live in configs/")):
+        result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out"),
+                                           *arguments])
+        assert result.exit_code == 2 and result.output.startswith(message), result.output
+        assert len(result.output.strip().splitlines()) == 1
+        assert not (tmp_path / "out").exists()
 
 
 def _serve(folder):
