@@ -22,14 +22,17 @@ def _fail(error: Exception) -> None:
 
 
 class _Group(click.Group):
-    """Turns tambridge's input errors, and the system's refusals to read or write a file (permissions, a full disk),
-    into one line on stderr and exit status 2, never a traceback."""
+    """Turns tambridge's input errors, click's errors in a command's arguments, and the system's refusals to read or
+    write a file (permissions, a full disk), into one line on stderr and exit status 2, never a traceback."""
 
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
         except TambridgeError as error:
             _fail(error)
+        except click.UsageError as error:
+            help_command = f"{error.ctx.command_path} --help" if error.ctx is not None else f"{ctx.command_path} --help"
+            _fail(TambridgeError(f"{' '.join(error.format_message().split())} (see {help_command})"))
         except OSError as error:
             _fail(TambridgeError(f"{error.filename or 'a file'}: {error.strerror or error}"))
 
@@ -180,7 +183,7 @@ def show_config(preset, overrides) -> None:
 @main.command()
 @click.option("-o", "--output", "output_dir", type=click.Path(), default="out/demo", show_default=True, callback=_output_folder,
               help="Output folder; an earlier demo run in it is replaced.")
-@click.option("--frames", type=int, default=60, show_default=True)
+@click.option("--frames", type=click.IntRange(min=1), default=60, show_default=True)
 @click.option("--size", default="320x240", show_default=True, help="WIDTHxHEIGHT of the synthetic images.")
 @click.option("--config", "preset", type=click.Path(path_type=Path), help="YAML preset (configs/*.yaml).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE")
@@ -212,10 +215,10 @@ def _parse_size(size: str) -> tuple[int, int]:
 
 @main.command()
 @click.argument("output_dir", type=click.Path(path_type=Path))
-@click.option("--frames", type=int, default=30, show_default=True)
+@click.option("--frames", type=click.IntRange(min=1), default=30, show_default=True)
 @click.option("--size", default="160x120", show_default=True, help="WIDTHxHEIGHT.")
-@click.option("--depth-noise", type=float, default=0.0, help="Depth noise sigma at 1 m, metres (grows with z^2).")
-@click.option("--colour-noise", type=float, default=0.0, help="Colour noise sigma, in [0, 1] units.")
+@click.option("--depth-noise", type=click.FloatRange(min=0.0), default=0.0, help="Depth noise sigma at 1 m, metres (grows with z^2).")
+@click.option("--colour-noise", type=click.FloatRange(min=0.0), default=0.0, help="Colour noise sigma, in [0, 1] units.")
 @click.option("--motion-blur", "exposure", type=click.FloatRange(min=0.0), default=0.0, show_default=True, metavar="EXPOSURE_S",
               help="Exposure time, seconds (e.g. 0.033): each colour frame is the mean of sharp renders along the true "
                    "path over [t - EXPOSURE_S/2, t + EXPOSURE_S/2], and gt_rgb/ keeps the sharp frames; depth stays "
@@ -233,7 +236,7 @@ def _parse_size(size: str) -> tuple[int, int]:
               help="Odd k: k x k rays per pixel averaged (anti-aliased colour, as a camera's pixel integrates); ~k^2 slower.")
 @click.option("--colour-baseline", type=float, default=0.0, show_default=True,
               help="Metres between a separate colour camera and the depth camera (unregistered, Kinect v1 style; 0: registered).")
-@click.option("--colour-focal-scale", type=float, default=1.0, show_default=True,
+@click.option("--colour-focal-scale", type=click.FloatRange(min=0.0, min_open=True), default=1.0, show_default=True,
               help="The separate colour camera's focal length over the depth camera's (Kinect v1: about 0.9).")
 @click.option("--depth-delay", type=float, default=0.0, show_default=True, metavar="SECONDS",
               help="Depth images taken this long after their colour images (negative: before), stamped and rendered "
@@ -270,9 +273,13 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
     """ATE and RPE of a TUM trajectory ESTIMATE against GROUND_TRUTH, with a plot."""
     from tambridge.evaluation.plots import plot_trajectory_errors
     from tambridge.evaluation.trajectory import evaluate_trajectory
-    from tambridge.files import atomic_write_text
+    from tambridge.files import atomic_write_text, check_output_file
     from tambridge.trajectory import read_tum_trajectory
 
+    plot = plot or Path(estimate).with_suffix(".png")
+    check_output_file(plot, "--plot", (estimate, ground_truth))
+    if json_path:
+        check_output_file(json_path, "--json", (estimate, ground_truth, plot))
     try:
         errors = evaluate_trajectory(read_tum_trajectory(estimate), read_tum_trajectory(ground_truth), align)
     except ValueError as error:
@@ -292,7 +299,6 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
     width = max(len(name) for name, _ in rows)
     for name, value in rows:
         click.echo(f"{name:<{width}}  {value}")
-    plot = plot or Path(estimate).with_suffix(".png")
     plot_trajectory_errors({Path(estimate).stem: errors}, plot, title=str(estimate))
     click.echo(f"plot: {plot}")
     if json_path:
@@ -306,10 +312,14 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
 def export_mesh(run_dir, mesh_format, output_path) -> None:
     """Convert RUN_DIR/mesh.ply (from reconstruct) to OBJ, GLB or PLY for other tools."""
     from tambridge.export.mesh import convert_mesh
-
+    from tambridge.files import check_output_file
     from tambridge.run_folder import add_to_manifest
 
     output_path = output_path or Path(run_dir) / f"mesh.{mesh_format}"
+    check_output_file(output_path, "-o", (Path(run_dir) / "mesh.ply",))
+    if output_path.suffix.lower() != f".{mesh_format}":
+        raise TambridgeError(f"-o {output_path}: --format {mesh_format} writes a .{mesh_format} file; name the file "
+                             f"*.{mesh_format} or pick the format of its suffix")
     mesh = convert_mesh(Path(run_dir) / "mesh.ply", output_path, mesh_format)
     add_to_manifest(Path(run_dir), output_path)
     click.echo(f"wrote {output_path} ({len(mesh.vertices)} vertices, {len(mesh.faces)} triangles)")
@@ -368,8 +378,11 @@ def colmap(sequence_dir, output_dir, every, max_frames, camera_file) -> None:
 def compare(estimates, ground_truth, sim3_names, plot, json_path) -> None:
     """ATE/RPE of several TUM trajectories ESTIMATES against --gt in one table, and one plot of all."""
     from pipelines.compare import compare_files
-    from tambridge.files import atomic_write_text
+    from tambridge.files import atomic_write_text, check_output_file
 
+    check_output_file(plot, "--plot", (*estimates, ground_truth))
+    if json_path:
+        check_output_file(json_path, "--json", (*estimates, ground_truth, plot))
     comparison = compare_files(ground_truth, estimates, sim3_names, plot)
     click.echo(comparison.table())
     click.echo(f"plot: {plot}")

@@ -49,7 +49,7 @@ from tambridge.run_folder import RunFolder, Start, check_output_folder
 from tambridge.runlog import RunLog, peak_memory_mb
 from tambridge.stop import RunStopped, StopRequests, signal_name
 from tambridge.trajectory import Trajectory, write_tum_trajectory
-from tambridge.viewer import RerunViewer, log_final_state
+from tambridge.viewer import RerunViewer, check_viewer_spec, log_final_state
 
 logger = logging.getLogger("tambridge.pipelines.reconstruct")
 
@@ -108,6 +108,8 @@ def reconstruct(
     Every input is checked before anything in ``output_dir`` is touched.
     """
     check_config(config)
+    if viewer:
+        check_viewer_spec(viewer)
     device = resolve_device(config.device)
     output_dir = Path(output_dir)
     checkpoint_file = checkpoint_path(output_dir)
@@ -142,8 +144,8 @@ def reconstruct(
         # The run's clock started with the reading of the sequence, as end to end always has.
         counters = RunCounters(started_s=read_started)
         if start is Start.RESUME and checkpoint is None:
-            logger.warning("%s: no checkpoint (the run was stopped before its first one): starting from the first frame",
-                           checkpoint_file)
+            logger.warning("%s: no checkpoint (the run here stopped before its first one, or there is none): "
+                           "starting from the first frame", checkpoint_file)
         start_frame = 0 if checkpoint is None else restore_run(checkpoint, frontend, mapping, run_log, counters)
         checkpoints = None
         if config.checkpoint.every_keyframes:

@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from tambridge.errors import CameraConfigError
-from tambridge.files import read_text_file
+from tambridge.files import read_text_file, yaml_error_line
 
 if TYPE_CHECKING:
     import torch
@@ -349,7 +349,7 @@ def load_sensor_file(path: Path) -> RgbdSensor:
         try:
             values = yaml.safe_load(text) or {}
         except yaml.YAMLError as error:
-            raise CameraConfigError(f"{path}: not valid YAML ({error})") from error
+            raise CameraConfigError(f"{path}: not valid YAML ({yaml_error_line(error)})") from error
         if not isinstance(values, dict):
             raise CameraConfigError(f"{path}: expected a mapping of camera keys")
         return sensor_from_mapping(values, path)

@@ -17,6 +17,7 @@ from pathlib import Path
 import yaml
 
 from tambridge.errors import ConfigError
+from tambridge.files import yaml_error_line
 from tambridge.bridge.config import BridgeConfig
 from tambridge.checkpoint import CheckpointConfig
 from tambridge.evaluation.config import EvaluationConfig
@@ -179,7 +180,7 @@ def load_config(preset: Path | None = None, overrides: typing.Sequence[str] = ()
         try:
             values = yaml.safe_load(preset.read_text()) or {}
         except yaml.YAMLError as error:
-            raise ConfigError(f"{preset}: not valid YAML ({error})") from error
+            raise ConfigError(f"{preset}: not valid YAML ({yaml_error_line(error)})") from error
         if not isinstance(values, dict):
             raise ConfigError(f"{preset}: expected a mapping at the top level")
         _apply(config, values, "")
@@ -192,7 +193,11 @@ def load_config(preset: Path | None = None, overrides: typing.Sequence[str] = ()
         parts = key.strip().split(".")
         for part in parts[:-1]:
             cursor = cursor.setdefault(part, {})
-        cursor[parts[-1]] = yaml.safe_load(raw) if raw.strip() else None
+        try:
+            cursor[parts[-1]] = yaml.safe_load(raw) if raw.strip() else None
+        except yaml.YAMLError as error:
+            raise ConfigError(f"--set {override!r}: the value is not valid YAML ({yaml_error_line(error)}); give a "
+                              "number, true/false, null or a quoted string") from None
         _apply(config, nested, "")
     return check_config(config)
 

@@ -9,7 +9,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 from tambridge.errors import TambridgeError
 
@@ -46,6 +46,32 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write bytes to ``path`` atomically."""
     with atomic_path(path) as temp_path:
         temp_path.write_bytes(data)
+
+
+def check_output_file(path: Path, option: str, inputs: Iterable[Path] = ()) -> None:
+    """Raise :class:`TambridgeError` (one line naming ``option`` and ``path``) unless ``path`` can take a new file
+    without touching ``inputs``: not one of them, not a folder, in a folder that exists or can be made. Called before
+    any work, so that a bad output path fails before the work and before other outputs are written."""
+    path = Path(path)
+    for source in inputs:
+        if Path(source).exists() and path.exists() and path.resolve() == Path(source).resolve():
+            raise TambridgeError(f"{option} {path}: is an input of this command; name another file")
+    if path.is_dir():
+        raise TambridgeError(f"{option} {path}: is a folder; name a file")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise TambridgeError(f"{option} {path}: {parent} is a file, not a folder; name a file in a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise TambridgeError(f"{option} {path}: cannot write in {parent}; name a file in a folder you can write")
+
+
+def yaml_error_line(error: Exception) -> str:
+    """A YAML parser's error in one line: what is wrong and where (line and column, 1-based)."""
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    mark = getattr(error, "problem_mark", None)
+    return problem if mark is None else f"{problem} at line {mark.line + 1}, column {mark.column + 1}"
 
 
 UTF16_BOMS = (b"\xff\xfe", b"\xfe\xff")

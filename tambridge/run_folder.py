@@ -51,7 +51,18 @@ def check_output_folder(path: Path, start: Start, resumable: Iterable[str]) -> N
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise OutputFolderError(f"{path}: is a file, not a folder; give -o a folder (new or from an earlier run)")
-    if not path.is_dir() or start is Start.OVERWRITE:
+    if not path.is_dir():
+        return
+    # A folder of an earlier run may hold the user's own files beside it (they are left alone); any other
+    # non-empty folder is not ours to write into, resume or overwrite (the current folder, after an unset shell
+    # variable).
+    entries = sorted(entry.name for entry in path.iterdir() if entry.name != LOCK_NAME)
+    run_files = [MANIFEST_NAME, FINISHED_MARKER, *resumable]
+    if entries and not any((path / name).is_file() for name in run_files):
+        raise OutputFolderError(f"{path}: is not empty and holds no tambridge run ({', '.join(entries[:3])}"
+                                f"{', ...' if len(entries) > 3 else ''}); give an empty or new folder as -o")
+    read_manifest(path)
+    if start is Start.OVERWRITE:
         return
     if start is Start.RESUME:
         if (path / FINISHED_MARKER).is_file():
@@ -65,13 +76,6 @@ def check_output_folder(path: Path, start: Start, resumable: Iterable[str]) -> N
     if killed:
         raise OutputFolderError(f"{path}: holds a killed run's checkpoint ({killed[0]}); pass --resume to continue it, "
                                 f"--overwrite to start over, or give another -o")
-    # A folder of an earlier run may hold the user's own files beside it (they are left alone); any other
-    # non-empty folder is not ours to write into (the current folder, after an unset shell variable).
-    entries = sorted(entry.name for entry in path.iterdir())
-    if entries and not (path / MANIFEST_NAME).is_file():
-        raise OutputFolderError(f"{path}: is not empty and holds no tambridge run ({', '.join(entries[:3])}"
-                                f"{', ...' if len(entries) > 3 else ''}); give an empty or new folder as -o")
-    read_manifest(path)
 
 
 def read_manifest(folder: Path) -> list[str]:

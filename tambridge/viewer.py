@@ -13,6 +13,7 @@ Every entity is logged on the ``frame`` timeline (the frame index) and the ``tim
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 from pathlib import Path
 
@@ -43,17 +44,22 @@ def parse_viewer_spec(spec: str) -> Path | None:
     raise ViewerError(f"--viewer {spec!r}: expected 'rerun' (live viewer) or 'rerun:FILE.rrd' (save a recording)")
 
 
+def check_viewer_spec(spec: str) -> Path | None:
+    """:func:`parse_viewer_spec`, and a :class:`ViewerError` where rerun-sdk is not installed: what a run checks
+    before it touches its output folder."""
+    recording_path = parse_viewer_spec(spec)
+    if importlib.util.find_spec("rerun") is None:
+        raise ViewerError(f"--viewer {spec}: rerun-sdk is not installed; pip install 'tambridge[viewer]' (or rerun-sdk)")
+    return recording_path
+
+
 class RerunViewer:
     """Streams a run to rerun. Call the ``log_*`` methods as the run goes, then :meth:`close` once."""
 
     def __init__(self, spec: str, camera: Camera, application_id: str = "tambridge") -> None:
-        recording_path = parse_viewer_spec(spec)
-        try:
-            import rerun as rr
-        except ImportError:
-            raise ViewerError(
-                f"--viewer {spec}: rerun-sdk is not installed; pip install 'tambridge[viewer]' (or rerun-sdk)"
-            ) from None
+        recording_path = check_viewer_spec(spec)
+        import rerun as rr
+
         self._rr = rr
         self.camera = camera
         self.recording = rr.RecordingStream(application_id)

@@ -321,7 +321,7 @@ def test_resume_of_a_run_killed_before_its_first_checkpoint_starts_over(syntheti
                                        *options])
     assert result.exit_code == 0, result.output
     assert len(np.loadtxt(out / "trajectory.txt")) == 8
-    assert "no checkpoint (the run was stopped before its first one): starting from the first frame" in \
+    assert "no checkpoint (the run here stopped before its first one, or there is none): starting from the first frame" in \
         (out / "run.log").read_text()
 
 

@@ -117,6 +117,59 @@ def test_download_fetches_and_unpacks_from_a_local_mirror(synthetic_sequence_dir
     assert bad_name.exit_code == 2 and "expected a TUM sequence name" in bad_name.output
 
 
+def test_evaluate_and_compare_refuse_bad_output_paths_before_any_work(synthetic_sequence_dir, tmp_path):
+    estimate, ground_truth = tmp_path / "estimate.txt", tmp_path / "truth.txt"
+    for path in (estimate, ground_truth):
+        path.write_bytes((synthetic_sequence_dir / "groundtruth.txt").read_bytes())
+    (tmp_path / "a_file").write_text("x")
+    inputs = {path: path.read_bytes() for path in (estimate, ground_truth)}
+    for command, message in (
+        (["evaluate", estimate, ground_truth, "--plot", estimate], f"--plot {estimate}: is an input of this command"),
+        (["evaluate", estimate, ground_truth, "--json", ground_truth], f"--json {ground_truth}: is an input"),
+        (["evaluate", estimate, ground_truth, "--plot", tmp_path / "p.png", "--json", tmp_path],
+         f"--json {tmp_path}: is a folder"),
+        (["evaluate", estimate, ground_truth, "--plot", tmp_path / "a_file" / "p.png"],
+         f"--plot {tmp_path / 'a_file' / 'p.png'}: {tmp_path / 'a_file'} is a file, not a folder"),
+        (["compare", estimate, "--gt", ground_truth, "--plot", ground_truth], f"--plot {ground_truth}: is an input"),
+    ):
+        result = CliRunner().invoke(main, [str(argument) for argument in command])
+        assert result.exit_code == 2 and result.output.startswith(f"error: {message}"), result.output
+        assert len(result.output.splitlines()) == 1
+    assert {path: path.read_bytes() for path in inputs} == inputs
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["a_file", "estimate.txt", "truth.txt"]
+    result = CliRunner().invoke(main, ["evaluate", str(estimate), str(ground_truth), "--plot", str(tmp_path / "new" / "p.png")])
+    assert result.exit_code == 0 and (tmp_path / "new" / "p.png").read_bytes().startswith(b"\x89PNG")
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["synth", "{tmp}/s", "--frames", "0"], "Invalid value for '--frames': 0 is not in the range x>=1. (see main synth --help)"),
+    (["synth", "{tmp}/s", "--depth-noise", "-1"], "Invalid value for '--depth-noise'"),
+    (["synth", "{tmp}/s", "--colour-focal-scale", "0"], "Invalid value for '--colour-focal-scale'"),
+    (["export", "{tmp}/run"], "Missing option '--format'. Choose from: colmap, nerfstudio (see main export --help)"),
+    (["download", "fr1/desk", "--to", "{tmp}/data", "--base-url", "notaurl"],
+     "--base-url 'notaurl': expected an http://, https:// or file:// address"),
+    (["config", "--config", "{tmp}/bad.yaml"], "{tmp}/bad.yaml: not valid YAML (expected ',' or ']', but got '<stream end>' "
+                                               "at line 2, column 1)"),
+    (["config", "--set", "mapper.iterations=[1"], "--set 'mapper.iterations=[1': the value is not valid YAML"),
+])
+def test_argument_errors_are_one_line_and_write_nothing(tmp_path, arguments, message):
+    (tmp_path / "bad.yaml").write_text("mapper: [1, 2\n")
+    result = CliRunner().invoke(main, [argument.format(tmp=tmp_path) for argument in arguments])
+    assert result.exit_code == 2 and result.output.startswith("error: " + message.format(tmp=tmp_path)), result.output
+    assert len(result.output.splitlines()) == 1
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml"]
+
+
+def test_a_bad_viewer_is_refused_before_the_output_folder_is_made(synthetic_sequence_dir, tmp_path):
+    for viewer, message in (("foo", "--viewer 'foo': expected 'rerun'"), ("rerun:x.rrd", None)):
+        result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out"),
+                                           "--viewer", viewer])
+        if message is None:  # rerun-sdk installed: the spec is good
+            continue
+        assert result.exit_code == 2 and result.output.startswith(f"error: {message}"), result.output
+        assert not (tmp_path / "out").exists()
+
+
 def test_atomic_writes_leave_no_temp_files_and_normal_permissions(tmp_path):
     import os
 

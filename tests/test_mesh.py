@@ -148,3 +148,10 @@ def test_export_mesh_command(coarse_mesh, tmp_path):
     assert len(read_mesh(tmp_path / "mesh.glb").vertices) == len(coarse_mesh.vertices)
     missing = CliRunner().invoke(main, ["export-mesh", str(tmp_path / "nothing")])
     assert missing.exit_code == 2 and "mesh.ply" in missing.output
+    # Refused before anything is written: the run's own mesh.ply as output, a suffix that is not the format's.
+    before = (tmp_path / "mesh.ply").read_bytes()
+    for arguments, message in ((["--format", "ply"], "mesh.ply: is an input of this command"),
+                               (["--format", "glb", "-o", str(tmp_path / "m.obj")], "--format glb writes a .glb file")):
+        refused = CliRunner().invoke(main, ["export-mesh", str(tmp_path), *arguments])
+        assert refused.exit_code == 2 and message in refused.output and len(refused.output.splitlines()) == 1
+    assert (tmp_path / "mesh.ply").read_bytes() == before and not (tmp_path / "m.obj").exists()

@@ -121,8 +121,9 @@ def test_output_folders_that_are_not_a_runs_are_refused(synthetic_sequence_dir, 
     (tmp_path / "FOREIGN").mkdir()
     (tmp_path / "FOREIGN" / "notes.txt").write_text("x")
     target = "" if output == "" else str(tmp_path / output)
-    result = _run(["reconstruct", str(synthetic_sequence_dir), "-o", target, "--quiet", *_set(FAST)])
-    assert result.exit_code == 2 and message in result.output
+    for start in ([], ["--resume"], ["--overwrite"]):
+        result = _run(["reconstruct", str(synthetic_sequence_dir), "-o", target, "--quiet", *start, *_set(FAST)])
+        assert result.exit_code == 2 and message in result.output, (start, result.output)
     assert (tmp_path / "FILE").read_text() == "x" and sorted(os.listdir(tmp_path / "FOREIGN")) == ["notes.txt"]
 
 

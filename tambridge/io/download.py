@@ -6,6 +6,7 @@ import re
 import shutil
 import tarfile
 import tempfile
+import urllib.parse
 import urllib.request
 from pathlib import Path
 
@@ -26,6 +27,9 @@ def tum_archive_url(name: str, base_url: str = TUM_BASE_URL) -> tuple[str, str]:
     match = _NAME.match(name.strip().lower())
     if match is None:
         raise DownloadError(f"{name!r}: expected a TUM sequence name such as fr1/desk, fr2/xyz or fr3/long_office_household")
+    if urllib.parse.urlparse(base_url).scheme not in ("http", "https", "file"):
+        raise DownloadError(f"--base-url {base_url!r}: expected an http://, https:// or file:// address of a mirror of "
+                            "the TUM dataset folder")
     camera, scene = match.groups()
     folder = f"rgbd_dataset_freiburg{camera}_{scene}"
     return f"{base_url.rstrip('/')}/freiburg{camera}/{folder}.tgz", folder
