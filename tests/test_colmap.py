@@ -1,12 +1,14 @@
 """COLMAP on a synthetic sequence: the Sim(3)-aligned trajectory lies within 2 cm of the truth."""
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pipelines.colmap import colmap
+from tambridge.errors import TambridgeError
 from tambridge.evaluation.colmap import ColmapError, ColmapOptions, is_monocular_trajectory_file, run_colmap
 from tambridge.io.synthetic import SynthOptions, default_camera, write_synthetic_sequence
 from tambridge.trajectory import read_tum_trajectory
@@ -35,6 +37,31 @@ def test_colmap_trajectory_within_2cm_after_sim3(sequence_320, tmp_path):
     np.testing.assert_allclose(read_tum_trajectory(written).timestamps_s, run.trajectory.timestamps_s, atol=1e-6)
     assert json.loads((tmp_path / "out" / "metrics.json").read_text())["registered"] == 20
     assert (tmp_path / "out" / "trajectory.png").read_bytes()[:8] == PNG_SIGNATURE
+
+
+def test_colmap_refuses_a_bad_output_folder_before_running(synthetic_sequence_dir, tmp_path):
+    (tmp_path / "a_file").write_text("x")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("x")
+    for output, message in ((tmp_path / "a_file", "a_file is a file, not a folder"),
+                            (tmp_path / "other", r"holds files this command did not write \(notes.txt\)")):
+        with pytest.raises(TambridgeError, match=message):
+            colmap(synthetic_sequence_dir, output, every=1)
+    assert sorted(path.name for path in tmp_path.rglob("*")) == ["a_file", "notes.txt", "other"]
+
+
+@pytest.mark.slow
+def test_ground_truth_on_another_clock_leaves_colmaps_trajectory_and_says_why(sequence_320, tmp_path):
+    sequence = tmp_path / "seq"
+    shutil.copytree(sequence_320, sequence)
+    truth = np.loadtxt(sequence / "groundtruth.txt")
+    truth[:, 0] += 1000.0
+    np.savetxt(sequence / "groundtruth.txt", truth, fmt="%.9f")
+    run = colmap(sequence, tmp_path / "out", every=2, options=ColmapOptions(num_threads=2))
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert run.errors is None and metrics["trajectory"] is None
+    assert metrics["trajectory_unavailable"].startswith("only 0 of ")
+    assert len(read_tum_trajectory(tmp_path / "out" / "trajectory.txt")) == metrics["registered"] >= 3
 
 
 def test_too_few_images_is_an_input_error():
