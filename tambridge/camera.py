@@ -244,7 +244,7 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
         raise CameraConfigError(f"{source}: missing {', '.join(missing)}; a camera file needs "
                                 f"{', '.join(_CAMERA_KEYS)} and depth_scale (raw depth units per metre: TUM 5000, "
                                 "millimetres 1000)")
-    _check_finite(values, source)
+    _check_numbers(values, source)
     try:
         distortion = values.get("distortion") or [values.get(f"d{i}", 0.0) for i in range(5)]
         camera = _camera_from_values(values, "")
@@ -283,15 +283,23 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
     return sensor
 
 
-def _check_finite(values: dict, source: Path) -> None:
-    """Refuse NaN or infinity in any numeric camera key, naming the key."""
+_LIST_KEYS = frozenset(("distortion", "colour_distortion", "colour_from_depth"))
+"""Camera keys that take a list of numbers (colour_from_depth: rows of them); every other key takes one number."""
+
+
+def _check_numbers(values: dict, source: Path) -> None:
+    """Refuse a camera key that is not a finite number (for :data:`_LIST_KEYS`, numbers), naming the key; null is
+    a key left unset."""
     for key, value in values.items():
-        numbers = np.ravel(np.asarray(value, dtype=object))
+        if value is None:
+            continue
+        numbers = np.ravel(np.asarray(value, dtype=object)) if key in _LIST_KEYS else [value]
         for number in numbers:
             try:
                 as_float = float(number)
             except (TypeError, ValueError):
-                continue
+                expected = "a list of numbers" if key in _LIST_KEYS else "a number"
+                raise CameraConfigError(f"{source}: {key} is {value!r}; expected {expected}") from None
             if not np.isfinite(as_float):
                 raise CameraConfigError(f"{source}: {key} is {number!r}; camera values must be finite numbers")
 

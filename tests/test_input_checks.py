@@ -62,6 +62,15 @@ def test_nan_or_inf_in_a_camera_key_is_refused_by_name(tmp_path, key, value):
         load_sensor_file(path)
 
 
+@pytest.mark.parametrize("key, value, expected", [("fx", "[1, 2]", "a number"), ("depth_scale", "millimetres", "a number"),
+                                                  ("distortion", "[0.1, fast, 0, 0, 0]", "a list of numbers")])
+def test_a_camera_key_that_is_not_a_number_is_refused_by_name(tmp_path, key, value, expected):
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump({**CAMERA, key: 0}).replace(f"{key}: 0", f"{key}: {value}"))
+    with pytest.raises(CameraConfigError, match=rf"camera\.yaml: {key} is .*; expected {expected}$"):
+        load_sensor_file(path)
+
+
 def test_principal_point_outside_the_image_is_refused(tmp_path):
     path = tmp_path / "camera.yaml"
     path.write_text(yaml.safe_dump({**CAMERA, "cx": 80.0}))
