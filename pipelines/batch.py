@@ -204,7 +204,6 @@ def run_batch(sequences: Sequence[BatchSequence], out_dir: Path, options: BatchO
     # A bad preset or --set stops the batch here, not in every task.
     check_config(load_config(options.preset, options.overrides))
     out_dir = Path(out_dir).resolve()
-    out_dir.mkdir(parents=True, exist_ok=True)
     preset = None if options.preset is None else str(Path(options.preset).resolve())
     batch = {"output": str(out_dir), "started": _now(), "finished": None, "address": options.address,
              "config": preset, "overrides": list(options.overrides), "cpus_per_run": options.cpus_per_run,
@@ -224,13 +223,16 @@ def run_batch(sequences: Sequence[BatchSequence], out_dir: Path, options: BatchO
         else:
             rows[sequence.name] = SequenceRow(name=sequence.name, sequence=str(sequence.folder), status=Status.pending)
             to_run.append(sequence)
-    write_summary(out_dir, list(rows.values()), batch)
+    # Ray first: a cluster that cannot be joined stops the batch before it writes anything.
+    ray = connect(options.address) if to_run else None
     interrupted = False
-    if to_run:
-        ray = connect(options.address)
-        try:
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        write_summary(out_dir, list(rows.values()), batch)
+        if to_run:
             interrupted = _run_tasks(ray, to_run, out_dir, preset, options, rows, batch, progress)
-        finally:
+    finally:
+        if ray is not None:
             ray.shutdown()
     batch["finished"] = _now()
     write_summary(out_dir, list(rows.values()), batch)

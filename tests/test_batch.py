@@ -119,6 +119,16 @@ def test_summary_has_one_row_per_sequence_in_json_csv_and_html(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_cluster_that_cannot_be_joined_stops_the_batch_before_it_writes(sequences, tmp_path):
+    out_dir = tmp_path / "out"
+    batch = subprocess.run(_batch_command([sequences["first"]], out_dir, "--address", "bad addr"),
+                           cwd=ROOT, env=_environment(), capture_output=True, text=True, timeout=120)
+    assert batch.returncode == 2
+    assert batch.stderr.strip().startswith("error: --address bad addr: cannot join the Ray cluster there")
+    assert len(batch.stderr.strip().splitlines()) == 1 and not out_dir.exists()
+
+
+@pytest.mark.slow
 def test_a_corrupt_sequence_fails_alone_and_the_batch_says_so(sequences, tmp_path):
     out_dir = tmp_path / "out"
     names = ("first", "second", "corrupt")
