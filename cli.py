@@ -31,8 +31,8 @@ class _Group(click.Group):
         except TambridgeError as error:
             _fail(error)
         except click.UsageError as error:
-            help_command = f"{error.ctx.command_path} --help" if error.ctx is not None else f"{ctx.command_path} --help"
-            _fail(TambridgeError(f"{' '.join(error.format_message().split())} (see {help_command})"))
+            command_path = (error.ctx or ctx).command_path
+            _fail(TambridgeError(f"{' '.join(error.format_message().split())} (see {command_path} --help)"))
         except OSError as error:
             _fail(TambridgeError(f"{error.filename or 'a file'}: {error.strerror or error}"))
 
