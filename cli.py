@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import sys
@@ -10,7 +11,7 @@ from pathlib import Path
 
 import click
 
-from tambridge.errors import TambridgeError
+from tambridge.errors import INPUT_ERROR_STATUS, TambridgeError
 from tambridge.export.config import MeshSource
 from tambridge.settings import Device
 
@@ -18,7 +19,7 @@ from tambridge.settings import Device
 def _fail(error: Exception) -> None:
     click.echo(f"error: {error}", err=True)
     # A run stopped by a signal exits as the shell reports one (143 for SIGTERM, 130 for SIGINT).
-    sys.exit(getattr(error, "exit_status", 2))
+    sys.exit(getattr(error, "exit_status", INPUT_ERROR_STATUS))
 
 
 class _Group(click.Group):
@@ -34,7 +35,19 @@ class _Group(click.Group):
             command_path = (error.ctx or ctx).command_path
             _fail(TambridgeError(f"{' '.join(error.format_message().split())} (see {command_path} --help)"))
         except OSError as error:
-            _fail(TambridgeError(f"{error.filename or 'a file'}: {error.strerror or error}"))
+            fix = OS_ERROR_FIXES.get(error.errno, "check the path")
+            _fail(TambridgeError(f"{error.filename or 'a file'}: {error.strerror or error}; {fix}"))
+
+
+OS_ERROR_FIXES = {
+    errno.ENOSPC: "free some space or write the outputs elsewhere (-o)",
+    errno.EDQUOT: "free some of your quota or write the outputs elsewhere (-o)",
+    errno.EACCES: "give a path you may read or write, or change its permissions",
+    errno.EPERM: "give a path you may read or write, or change its permissions",
+    errno.EROFS: "write the outputs to a writable file system (-o)",
+    errno.ENAMETOOLONG: "give a shorter path",
+}
+"""What a user can do about the system's refusals the CLI reports (by errno); others say to check the path."""
 
 
 def _output_folder(ctx, param, value):
@@ -141,7 +154,7 @@ def reconstruct(sequence_dir, output_dir, preset, overrides, max_frames, stride,
 @click.option("--cpus-per-run", type=click.IntRange(min=1), default=1, show_default=True,
               help="CPUs Ray reserves for one sequence; its run's thread count.")
 @click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
-              help="Attempts after the first for a sequence that fails.")
+              help="Attempts after the first for a sequence that fails (not for one whose input its run refused).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def batch(sequences, output_dir, preset, overrides, address, cpus_per_run, retries, quiet) -> None:
     """Reconstruct many SEQUENCES (folders, glob patterns, or text files of one folder a line) on Ray.
@@ -251,6 +264,11 @@ def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_su
     from tambridge.io.synthetic import RotationBursts, SynthOptions, write_synthetic_sequence
 
     width, height = _parse_size(size)
+    # Frames of an earlier or longer sequence, or the user's files, would mix with the new ones.
+    if output_dir.exists() and not output_dir.is_dir():
+        raise TambridgeError(f"{output_dir}: is a file; give synth a new or empty folder")
+    if output_dir.is_dir() and any(output_dir.iterdir()):
+        raise TambridgeError(f"{output_dir}: is not empty; give synth a new or empty folder (remove it to write it again)")
     if supersampling % 2 == 0:
         raise click.BadParameter(f"{supersampling}: must be odd (the centre ray gives the depth)", param_hint="--supersampling")
     options = SynthOptions(frames, width, height, depth_noise_m=depth_noise, colour_noise=colour_noise,
@@ -279,7 +297,7 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
     plot = plot or Path(estimate).with_suffix(".png")
     check_output_file(plot, "--plot", (estimate, ground_truth))
     if json_path:
-        check_output_file(json_path, "--json", (estimate, ground_truth, plot))
+        check_output_file(json_path, "--json", (estimate, ground_truth), (("--plot", plot),))
     try:
         errors = evaluate_trajectory(read_tum_trajectory(estimate), read_tum_trajectory(ground_truth), align)
     except ValueError as error:
@@ -313,10 +331,13 @@ def export_mesh(run_dir, mesh_format, output_path) -> None:
     """Convert RUN_DIR/mesh.ply (from reconstruct) to OBJ, GLB or PLY for other tools."""
     from tambridge.export.mesh import convert_mesh
     from tambridge.files import check_output_file
-    from tambridge.run_folder import add_to_manifest
+    from tambridge.run_folder import add_to_manifest, is_listed
 
     output_path = output_path or Path(run_dir) / f"mesh.{mesh_format}"
     check_output_file(output_path, "-o", (Path(run_dir) / "mesh.ply",))
+    if output_path.exists() and not is_listed(run_dir, output_path):
+        raise TambridgeError(f"-o {output_path}: exists and is not a file of the run in {run_dir}; remove it or name "
+                             "a new file")
     if output_path.suffix.lower() != f".{mesh_format}":
         raise TambridgeError(f"-o {output_path}: --format {mesh_format} writes a .{mesh_format} file; name the file "
                              f"*.{mesh_format} or pick the format of its suffix")
@@ -382,7 +403,7 @@ def compare(estimates, ground_truth, sim3_names, plot, json_path) -> None:
 
     check_output_file(plot, "--plot", (*estimates, ground_truth))
     if json_path:
-        check_output_file(json_path, "--json", (*estimates, ground_truth, plot))
+        check_output_file(json_path, "--json", (*estimates, ground_truth), (("--plot", plot),))
     comparison = compare_files(ground_truth, estimates, sim3_names, plot)
     click.echo(comparison.table())
     click.echo(f"plot: {plot}")

@@ -38,7 +38,7 @@ import tambridge
 from tambridge.batch.sequences import BatchSequence
 from tambridge.batch.summary import SequenceRow, Status, is_finished, read_rows, with_metrics, write_summary
 from tambridge.checkpoint import checkpoint_path
-from tambridge.errors import TambridgeError
+from tambridge.errors import INPUT_ERROR_STATUS, TambridgeError
 
 logger = logging.getLogger("tambridge.pipelines.batch")
 
@@ -73,13 +73,16 @@ class BatchOptions:
 @dataclasses.dataclass(frozen=True)
 class Attempt:
     """What one task reports: the run's error line (None: it finished), whether it resumed from a checkpoint, its
-    wall seconds, and the host name and Ray node id of the node that ran it."""
+    wall seconds, the host name and Ray node id of the node that ran it, and whether the run refused its input
+    (``tambridge``'s exit status 2: a frame that cannot be decoded, a camera file that does not fit, a folder it may not
+    write), which another attempt would refuse again."""
 
     error: str | None
     resumed: bool
     wall_s: float
     node: str
     node_id: str
+    refused_input: bool = False
 
 
 @dataclasses.dataclass
@@ -136,7 +139,8 @@ def run_sequence(sequence_dir: str, run_dir: str, preset: str | None, overrides:
         stderr.seek(0)
         error = None if code == 0 else error_line(stderr.read().decode(errors="replace"), code)
     context = ray.get_runtime_context()
-    return Attempt(error, resume, time.perf_counter() - started, socket.gethostname(), context.get_node_id())
+    return Attempt(error, resume, time.perf_counter() - started, socket.gethostname(), context.get_node_id(),
+                   refused_input=code == INPUT_ERROR_STATUS)
 
 
 def _wait(child: subprocess.Popen) -> int:
@@ -284,7 +288,7 @@ def _run_tasks(ray, sequences: Sequence[BatchSequence], out_dir: Path, preset: s
             for reference in ready:
                 sequence = in_flight.pop(reference)
                 attempt, error = _outcome(ray, reference)
-                if error is not None and attempts[sequence.name] <= options.retries:
+                if error is not None and worth_retrying(attempt, attempts[sequence.name], options.retries):
                     logger.warning("%s: attempt %d failed (%s); retrying", sequence.name, attempts[sequence.name], error)
                     submit(sequence)
                     continue
@@ -313,6 +317,13 @@ def _run_tasks(ray, sequences: Sequence[BatchSequence], out_dir: Path, preset: s
         return True
     finally:
         bar.close()
+
+
+def worth_retrying(attempt: Attempt | None, attempts: int, retries: int) -> bool:
+    """Whether a failed sequence gets another attempt after ``attempts``: while ``retries`` allow, unless its run
+    refused its input (another attempt would refuse it again); a task that failed without a report (``attempt``
+    None: a lost worker or node) is retried."""
+    return attempts <= retries and (attempt is None or not attempt.refused_input)
 
 
 def _outcome(ray, reference) -> tuple[Attempt | None, str | None]:

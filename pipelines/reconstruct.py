@@ -11,6 +11,7 @@ import functools
 import logging
 import time
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -28,7 +29,6 @@ from tambridge.checkpoint import (
 )
 from tambridge.config import Config, check_config, config_for_camera, to_dict, to_yaml
 from tambridge.device import device_summary, resolve_device
-from tambridge.errors import TrackingFailedError
 from tambridge.evaluation.exported import ExportedMap
 from tambridge.evaluation.mapping import evaluation_frames, mapping_metrics
 from tambridge.evaluation.metrics import DeviceMetrics, RunMetrics, TrajectoryMetrics, WorldMetrics, write_metrics
@@ -45,7 +45,8 @@ from tambridge.frontend.factory import make_frontend
 from tambridge.io.prefetch import FramePrefetcher
 from tambridge.io.tum import RgbdSequence, find_accelerometer, open_sequence
 from tambridge.mapping.stage import MappingStage
-from tambridge.run_folder import RunFolder, Start, check_output_folder
+from tambridge.errors import TambridgeError, TrackingFailedError
+from tambridge.run_folder import RunFolder, Start, UnfinishedRunError, check_output_folder
 from tambridge.runlog import RunLog, peak_memory_mb
 from tambridge.stop import RunStopped, StopRequests, signal_name
 from tambridge.trajectory import Trajectory, write_tum_trajectory
@@ -132,7 +133,7 @@ def reconstruct(
         check_resumable(checkpoint_file, checkpoint, to_dict(config), fingerprint)
 
     with RunFolder(output_dir, start, RUN_FILES), RunLog(output_dir / "run.log", append=checkpoint is not None) as run_log, \
-            StopRequests() as stops:
+            StopRequests() as stops, saying_the_run_is_unfinished(output_dir, checkpoint_file):
         run_log.add_seconds("read", read_seconds)
         logger.info("reconstructing %s into %s: %d frames, camera %s", sequence.folder, output_dir, len(sequence),
                     sequence.camera)
@@ -193,6 +194,21 @@ def reconstruct(
         logger.info("finished in %.1f s", metrics.seconds_total)
         return ReconstructResult(world.trajectory(tracking.trajectory), world.trajectory(tracking.keyframe_trajectory),
                                  metrics, output_dir)
+
+
+@contextlib.contextmanager
+def saying_the_run_is_unfinished(output_dir: Path, checkpoint_file: Path) -> Iterator[None]:
+    """Re-raise an input error met mid-run (a frame that cannot be decoded; no frame tracked) as an
+    :class:`UnfinishedRunError` that says what ``output_dir`` now holds and how to go on; a stop by a signal
+    (:class:`RunStopped`) says so itself."""
+    try:
+        yield
+    except RunStopped:
+        raise
+    except TambridgeError as error:
+        go_on = ("--resume continues from its checkpoint once that is fixed, --overwrite starts it again"
+                 if checkpoint_file.is_file() else "the same command replaces it once that is fixed")
+        raise UnfinishedRunError(f"{error} ({output_dir} holds the unfinished run: {go_on})") from error
 
 
 def surface_points(mesh, gaussians, tracking: FrontendResult) -> np.ndarray:

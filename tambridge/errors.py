@@ -1,5 +1,8 @@
 """Exceptions raised on bad user input; each message names the file and the fix."""
 
+INPUT_ERROR_STATUS = 2
+"""The exit status of a command stopped by one of these errors (or by click's usage errors)."""
+
 
 class TambridgeError(Exception):
     """Base class of every error tambridge raises about user input or run state."""

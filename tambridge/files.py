@@ -48,14 +48,19 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         temp_path.write_bytes(data)
 
 
-def check_output_file(path: Path, option: str, inputs: Iterable[Path] = ()) -> None:
+def check_output_file(path: Path, option: str, inputs: Iterable[Path] = (),
+                      outputs: Iterable[tuple[str, Path]] = ()) -> None:
     """Raise :class:`TambridgeError` (one line naming ``option`` and ``path``) unless ``path`` can take a new file
-    without touching ``inputs``: not one of them, not a folder, in a folder that exists or can be made. Called before
-    any work, so that a bad output path fails before the work and before other outputs are written."""
+    without touching ``inputs``: not one of them, not a folder, in a folder that exists or can be made, and not one of
+    the command's other ``outputs`` (option, path). Called before any work, so that a bad output path fails before the
+    work and before other outputs are written."""
     path = Path(path)
     for source in inputs:
         if Path(source).exists() and path.exists() and path.resolve() == Path(source).resolve():
             raise TambridgeError(f"{option} {path}: is an input of this command; name another file")
+    for other_option, other in outputs:
+        if path.resolve() == Path(other).resolve():
+            raise TambridgeError(f"{option} {path}: is also the {other_option} file; name two different files")
     if path.is_dir():
         raise TambridgeError(f"{option} {path}: is a folder; name a file")
     parent = path.parent

@@ -32,6 +32,11 @@ class OutputFolderError(TambridgeError):
     """The output folder cannot be used as asked: it holds results, is locked by another run, or is not a folder."""
 
 
+class UnfinishedRunError(TambridgeError):
+    """An input error met while a run wrote into its folder (a frame that cannot be decoded): the folder holds an
+    unfinished run, which the message says how to replace or continue."""
+
+
 class Start(enum.Enum):
     """How a run treats what its output folder already holds."""
 
@@ -97,6 +102,13 @@ def read_manifest(folder: Path) -> list[str]:
         if relative.is_absolute() or ".." in relative.parts:
             raise OutputFolderError(f"{manifest}: lists {name!r}, outside its folder; remove the folder's files by hand")
     return list(document["files"])
+
+
+def is_listed(folder: Path, path: Path) -> bool:
+    """Whether ``path`` is a file the run in ``folder`` (or a command since, such as ``export-mesh``) listed in its
+    manifest: one that may be written again."""
+    folder, path = Path(folder).resolve(), Path(path).resolve()
+    return folder in path.parents and str(path.relative_to(folder)) in read_manifest(folder)
 
 
 def add_to_manifest(folder: Path, written: Path) -> None:

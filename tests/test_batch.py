@@ -4,6 +4,7 @@ driver and its rerun, a two-node cluster made with ``ray start``)."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import secrets
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from pipelines.batch import error_line
+from pipelines.batch import Attempt, error_line, worth_retrying
 from tambridge.batch.sequences import resolve_sequences
 from tambridge.batch.summary import SUMMARY_VERSION, SequenceRow, Status, write_summary
 from tambridge.checkpoint import checkpoint_path
@@ -68,8 +69,9 @@ def sequences(tmp_path_factory) -> dict[str, Path]:
 
 
 def test_sequences_come_from_folders_patterns_and_list_files(tmp_path):
-    for name in ("a", "b", "c"):
-        (tmp_path / "data" / name).mkdir(parents=True)
+    for folder in ("data/a", "data/b", "data/c", "other/a"):
+        (tmp_path / folder).mkdir(parents=True)
+        (tmp_path / folder / "rgb.txt").write_text("")
     (tmp_path / "data" / "notes.txt").write_text("x")
     listing = tmp_path / "list.txt"
     listing.write_text("# tonight\ndata/c\n\ndata/a  # again\n")
@@ -77,7 +79,6 @@ def test_sequences_come_from_folders_patterns_and_list_files(tmp_path):
     assert [(sequence.name, sequence.folder) for sequence in found] == [
         (name, (tmp_path / "data" / name).resolve()) for name in ("b", "a", "c")]
 
-    (tmp_path / "other" / "a").mkdir(parents=True)
     with pytest.raises(TambridgeError, match="two sequences named 'a'"):
         resolve_sequences([str(tmp_path / "data" / "a"), str(tmp_path / "other" / "a")])
     with pytest.raises(TambridgeError, match="no such folder"):
@@ -87,6 +88,22 @@ def test_sequences_come_from_folders_patterns_and_list_files(tmp_path):
     listing.write_text("data/z\n")
     with pytest.raises(TambridgeError, match=r"list.txt:1: 'data/z' is not a folder"):
         resolve_sequences([str(listing)])
+
+
+def test_sequences_must_be_sequence_folders(tmp_path):
+    (tmp_path / "notes").mkdir()
+    with pytest.raises(TambridgeError) as refused:
+        resolve_sequences([str(tmp_path / "*")])
+    assert str(refused.value) == (f"{tmp_path / 'notes'}: not a sequence folder (no rgb.txt or depth.txt); leave it "
+                                  "out of the batch's folders, patterns and list files")
+
+
+def test_a_failed_run_is_retried_unless_it_refused_its_input():
+    failed = Attempt("killed by SIGKILL (out of memory?)", False, 1.0, "node", "id")
+    refused = dataclasses.replace(failed, error="rgb/0.png: cannot decode image", refused_input=True)
+    assert [worth_retrying(failed, attempts, 2) for attempts in (1, 2, 3)] == [True, True, False]
+    assert [worth_retrying(None, attempts, 1) for attempts in (1, 2)] == [True, False]
+    assert not worth_retrying(refused, 1, 2)
 
 
 def test_error_line_is_the_runs_error_or_its_signal_or_its_last_line():
@@ -152,7 +169,8 @@ def test_a_corrupt_sequence_fails_alone_and_the_batch_says_so(sequences, tmp_pat
         assert row["report"] == f"{name}/report/index.html"
         assert f'<a href="{name}/report/index.html">{name}</a>' in (out_dir / "index.html").read_text()
     corrupt = rows["corrupt"]
-    assert (corrupt["status"], corrupt["attempts"], corrupt["frames"]) == ("failed", 2, None)
+    # The run refused its input: another attempt would refuse it again.
+    assert (corrupt["status"], corrupt["attempts"], corrupt["frames"]) == ("failed", 1, None)
     assert str(sequences["corrupt"] / "rgb") in corrupt["error"] and "cannot decode image" in corrupt["error"]
     assert not (out_dir / "corrupt" / "metrics.json").exists()
 

@@ -132,6 +132,10 @@ def test_evaluate_and_compare_refuse_bad_output_paths_before_any_work(synthetic_
         (["evaluate", estimate, ground_truth, "--plot", tmp_path / "a_file" / "p.png"],
          f"--plot {tmp_path / 'a_file' / 'p.png'}: {tmp_path / 'a_file'} is a file, not a folder"),
         (["compare", estimate, "--gt", ground_truth, "--plot", ground_truth], f"--plot {ground_truth}: is an input"),
+        (["evaluate", estimate, ground_truth, "--plot", tmp_path / "e.png", "--json", tmp_path / "e.png"],
+         f"--json {tmp_path / 'e.png'}: is also the --plot file; name two different files"),
+        (["compare", estimate, "--gt", ground_truth, "--plot", tmp_path / "c.png", "--json", tmp_path / "c.png"],
+         f"--json {tmp_path / 'c.png'}: is also the --plot file"),
     ):
         result = CliRunner().invoke(main, [str(argument) for argument in command])
         assert result.exit_code == 2 and result.output.startswith(f"error: {message}"), result.output
@@ -159,6 +163,72 @@ def test_argument_errors_are_one_line_and_write_nothing(tmp_path, arguments, mes
     assert result.exit_code == 2 and result.output.startswith("error: " + message.format(tmp=tmp_path)), result.output
     assert len(result.output.splitlines()) == 1
     assert sorted(path.name for path in tmp_path.iterdir()) == ["bad.yaml"]
+
+
+def test_synth_writes_only_into_a_new_or_empty_folder(tmp_path):
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "mine.txt").write_text("mine")
+    (tmp_path / "a_file").write_text("x")
+    for target, message in ((tmp_path / "notes", "is not empty; give synth a new or empty folder"),
+                            (tmp_path / "a_file", "is a file; give synth a new or empty folder")):
+        result = CliRunner().invoke(main, ["synth", str(target), "--frames", "2", "--size", "32x24"])
+        assert result.exit_code == 2 and result.output.startswith(f"error: {target}: {message}"), result.output
+    assert sorted(path.name for path in (tmp_path / "notes").iterdir()) == ["mine.txt"]
+    (tmp_path / "empty").mkdir()
+    result = CliRunner().invoke(main, ["synth", str(tmp_path / "empty"), "--frames", "2", "--size", "32x24"])
+    assert result.exit_code == 0 and len(open_sequence(tmp_path / "empty")) == 2
+
+
+def test_a_camera_file_of_another_size_is_refused_before_the_output_folder_is_made(synthetic_sequence_dir, tmp_path):
+    camera = yaml.safe_load((synthetic_sequence_dir / "camera.yaml").read_text())
+    (tmp_path / "camera.yaml").write_text(yaml.safe_dump({**camera, "width": 320, "height": 240}))
+    result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out"),
+                                       "--camera", str(tmp_path / "camera.yaml")])
+    first_image = open_sequence(synthetic_sequence_dir).rgb_paths[0]
+    assert result.output == (f"error: {first_image}: image is 160x120 but the camera is 320x240; fix width/height in "
+                             "camera.yaml (--camera)\n")
+    assert result.exit_code == 2 and not (tmp_path / "out").exists()
+
+
+def test_a_frame_that_cannot_be_decoded_mid_run_leaves_a_run_that_says_it_is_unfinished(synthetic_sequence_dir, tmp_path):
+    import shutil
+
+    sequence_dir = tmp_path / "sequence"
+    shutil.copytree(synthetic_sequence_dir, sequence_dir)
+    broken = open_sequence(sequence_dir).rgb_paths[4]
+    whole = broken.read_bytes()
+    # The file starts and ends as a PNG does (the check before the run passes), with its image data zeroed.
+    broken.write_bytes(whole[:64] + bytes(len(whole) - 128) + whole[-64:])
+    command = ["reconstruct", str(sequence_dir), "-o", str(tmp_path / "out"), "--max-frames", "8", "--quiet",
+               "--set", "mapper.enabled=false", "--set", "mesh.enabled=false"]
+    result = CliRunner().invoke(main, command)
+    assert result.output.splitlines()[-1] == (
+        f"error: {broken}: cannot decode image (corrupt, truncated or not an image); re-extract the sequence "
+        f"({tmp_path / 'out'} holds the unfinished run: the same command replaces it once that is fixed)")
+    assert result.exit_code == 2 and not (tmp_path / "out" / "metrics.json").exists()
+    broken.write_bytes(whole)
+    result = CliRunner().invoke(main, command)
+    assert result.exit_code == 0, result.output
+    assert read_metrics(tmp_path / "out" / "metrics.json").frames == 8
+
+
+def test_a_full_disk_or_a_refused_path_is_one_line_with_what_to_do(synthetic_sequence_dir, tmp_path, monkeypatch):
+    import errno
+
+    import pipelines.reconstruct
+
+    for number, strerror, fix in ((errno.ENOSPC, "No space left on device", "free some space or write the outputs "
+                                                                            "elsewhere (-o)"),
+                                  (errno.EACCES, "Permission denied", "give a path you may read or write, or change "
+                                                                      "its permissions"),
+                                  (errno.EIO, "Input/output error", "check the path")):
+        def refused(*arguments, **options):
+            raise OSError(number, strerror, str(tmp_path / "out" / "splats.ply"))
+
+        monkeypatch.setattr(pipelines.reconstruct, "reconstruct", refused)
+        result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out")])
+        assert result.exit_code == 2
+        assert result.output == f"error: {tmp_path / 'out' / 'splats.ply'}: {strerror}; {fix}\n"
 
 
 def test_a_bad_viewer_is_refused_before_the_output_folder_is_made(synthetic_sequence_dir, tmp_path):

@@ -20,6 +20,7 @@ from tambridge.export.mesh import (
 from tambridge.geometry import inverse, transform_points
 from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render
 from tambridge.io.tum import open_sequence
+from tambridge.run_folder import RunFolder, Start
 
 MAX_DEPTH_M = 3.0
 
@@ -142,10 +143,18 @@ def test_export_mesh_command(coarse_mesh, tmp_path):
 
     from cli import main
 
-    write_mesh(tmp_path / "mesh.ply", coarse_mesh)
-    result = CliRunner().invoke(main, ["export-mesh", str(tmp_path), "--format", "glb"])
-    assert result.exit_code == 0, result.output
-    assert len(read_mesh(tmp_path / "mesh.glb").vertices) == len(coarse_mesh.vertices)
+    with RunFolder(tmp_path, Start.NEW, ["mesh.ply"]):
+        write_mesh(tmp_path / "mesh.ply", coarse_mesh)
+    for _ in range(2):  # a second export replaces the first: the run's manifest lists it
+        result = CliRunner().invoke(main, ["export-mesh", str(tmp_path), "--format", "glb"])
+        assert result.exit_code == 0, result.output
+        assert len(read_mesh(tmp_path / "mesh.glb").vertices) == len(coarse_mesh.vertices)
+    # A file that is no output of the run is the user's: refused, untouched.
+    (tmp_path / "mine.obj").write_text("mine")
+    refused = CliRunner().invoke(main, ["export-mesh", str(tmp_path), "-o", str(tmp_path / "mine.obj")])
+    assert refused.output == (f"error: -o {tmp_path / 'mine.obj'}: exists and is not a file of the run in {tmp_path}; "
+                              "remove it or name a new file\n")
+    assert refused.exit_code == 2 and (tmp_path / "mine.obj").read_text() == "mine"
     missing = CliRunner().invoke(main, ["export-mesh", str(tmp_path / "nothing")])
     assert missing.exit_code == 2 and "mesh.ply" in missing.output
     # Refused before anything is written: the run's own mesh.ply as output, a suffix that is not the format's.

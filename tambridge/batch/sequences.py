@@ -7,8 +7,9 @@ import glob
 from pathlib import Path
 from typing import Sequence
 
-from tambridge.errors import TambridgeError
+from tambridge.errors import SequenceFormatError, TambridgeError
 from tambridge.files import read_text_file
+from tambridge.io.tum import check_sequence_folder
 
 GLOB_CHARACTERS = set("*?[")
 
@@ -26,8 +27,9 @@ def resolve_sequences(arguments: Sequence[str]) -> list[BatchSequence]:
 
     An argument is a sequence folder; a glob pattern (``data/*``: the folders it matches, sorted); or a text file
     with one folder a line (blank lines and ``#`` comments skipped; relative paths are relative to the file's
-    folder). A :class:`TambridgeError` names an argument that is none of these, a pattern that matches no folder,
-    and two sequences of the same name (their outputs would share ``OUT/<name>/``).
+    folder). A :class:`TambridgeError` names an argument that is none of these, a pattern that matches no folder, a
+    folder that is no sequence (without rgb.txt or depth.txt), and two sequences of the same name (their outputs
+    would share ``OUT/<name>/``).
     """
     folders: list[Path] = []
     for argument in arguments:
@@ -38,6 +40,11 @@ def resolve_sequences(arguments: Sequence[str]) -> list[BatchSequence]:
     sequences = []
     for folder in folders:
         folder = folder.resolve()
+        try:
+            check_sequence_folder(folder)
+        except SequenceFormatError:
+            raise TambridgeError(f"{folder}: not a sequence folder (no rgb.txt or depth.txt); leave it out of the "
+                                 f"batch's folders, patterns and list files") from None
         earlier = by_name.setdefault(folder.name, folder)
         if earlier != folder:
             raise TambridgeError(f"{earlier} and {folder}: two sequences named {folder.name!r} would write the same "

@@ -303,6 +303,19 @@ def _imread(path: Path, flags: int, listed_in: str) -> np.ndarray:
     return image
 
 
+def check_sequence_folder(folder: Path) -> None:
+    """Raise :class:`SequenceFormatError` unless ``folder`` is a folder with TUM's rgb.txt or depth.txt (a stat or
+    two; :func:`open_sequence` checks the rest)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise SequenceFormatError(f"{folder}: not a folder; pass a TUM RGB-D sequence folder (with rgb.txt, depth.txt)")
+    if not (folder / "rgb.txt").is_file() and not (folder / "depth.txt").is_file():
+        raise SequenceFormatError(
+            f"{folder}: not a sequence folder (no rgb.txt or depth.txt); "
+            "download one with 'tambridge download fr1/desk --to DIR' or make one with 'tambridge synth DIR'"
+        )
+
+
 def open_sequence(
     folder: Path,
     camera_file: Path | None = None,
@@ -313,16 +326,11 @@ def open_sequence(
     """Open a TUM-layout folder: associate colour and depth, pick the camera, load ground truth if present.
 
     ``stride`` keeps every n-th associated frame, ``max_frames`` caps the count after striding.
-    The depth scale is checked on the first frames that have depth (:func:`check_depth_scale_plausible`).
+    The depth scale is checked on the first frames that have depth (:func:`check_depth_scale_plausible`), and the
+    first frame's sizes against the camera (:func:`check_first_frame`).
     """
     folder = Path(folder)
-    if not folder.is_dir():
-        raise SequenceFormatError(f"{folder}: not a folder; pass a TUM RGB-D sequence folder (with rgb.txt, depth.txt)")
-    if not (folder / "rgb.txt").is_file() and not (folder / "depth.txt").is_file():
-        raise SequenceFormatError(
-            f"{folder}: not a sequence folder (no rgb.txt or depth.txt); "
-            "download one with 'tambridge download fr1/desk --to DIR' or make one with 'tambridge synth DIR'"
-        )
+    check_sequence_folder(folder)
     if stride < 1:
         raise SequenceFormatError(f"stride must be >= 1, got {stride}")
     if max_frames is not None and max_frames < 1:
@@ -360,7 +368,14 @@ def open_sequence(
         check_image_file(depth_path, "depth.txt")
     if check_depth_scale:
         check_depth_scale_plausible(sequence)
+    check_first_frame(sequence)
     return sequence
+
+
+def check_first_frame(sequence: RgbdSequence) -> None:
+    """Read frame 0 whole (colour, depth, the colour's registration): a camera file whose size is not the images'
+    fails here, naming the image and the key to fix, before a run writes anything rather than at its first frame."""
+    sequence[0]
 
 
 ACCELEROMETER_FILE = "accelerometer.txt"
