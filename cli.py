@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import json
 import logging
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -34,6 +35,10 @@ class _Group(click.Group):
         except click.UsageError as error:
             command_path = (error.ctx or ctx).command_path
             _fail(TambridgeError(f"{' '.join(error.format_message().split())} (see {command_path} --help)"))
+        except BrokenPipeError:
+            # The reader of the output went away (`tambridge config | head`): nothing to report to it.
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            sys.exit(1)
         except OSError as error:
             fix = OS_ERROR_FIXES.get(error.errno, "check the path")
             _fail(TambridgeError(f"{error.filename or 'a file'}: {error.strerror or error}; {fix}"))
@@ -292,6 +297,7 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
     from tambridge.evaluation.plots import plot_trajectory_errors
     from tambridge.evaluation.trajectory import evaluate_trajectory
     from tambridge.files import atomic_write_text, check_output_file
+    from tambridge.run_folder import add_to_manifest
     from tambridge.trajectory import read_tum_trajectory
 
     plot = plot or Path(estimate).with_suffix(".png")
@@ -321,6 +327,9 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
     click.echo(f"plot: {plot}")
     if json_path:
         atomic_write_text(json_path, json.dumps(summary, indent=2) + "\n")
+    # Written into a run's folder (the default plot lies beside trajectory.txt): --overwrite removes them with the run.
+    for written in filter(None, (plot, json_path)):
+        add_to_manifest(Path(estimate).parent, written)
 
 
 @main.command("export-mesh")
@@ -328,8 +337,11 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
 @click.option("--format", "mesh_format", type=click.Choice(["obj", "glb", "ply"]), default="obj", show_default=True)
 @click.option("-o", "--output", "output_path", type=click.Path(path_type=Path), help="Default: RUN_DIR/mesh.FORMAT.")
 def export_mesh(run_dir, mesh_format, output_path) -> None:
-    """Convert RUN_DIR/mesh.ply (from reconstruct) to OBJ, GLB or PLY for other tools."""
+    """Convert RUN_DIR/mesh.ply (from reconstruct) to OBJ, GLB or PLY for other tools. OBJ and PLY keep the run's
+    world (z up); GLB is turned to glTF's y up, as glTF viewers expect."""
+    from tambridge.evaluation.metrics import read_metrics
     from tambridge.export.mesh import convert_mesh
+    from tambridge.export.world import UpSource, gltf_from_world
     from tambridge.files import check_output_file
     from tambridge.run_folder import add_to_manifest, is_listed
 
@@ -341,7 +353,15 @@ def export_mesh(run_dir, mesh_format, output_path) -> None:
     if output_path.suffix.lower() != f".{mesh_format}":
         raise TambridgeError(f"-o {output_path}: --format {mesh_format} writes a .{mesh_format} file; name the file "
                              f"*.{mesh_format} or pick the format of its suffix")
-    mesh = convert_mesh(Path(run_dir) / "mesh.ply", output_path, mesh_format)
+    rotation = None
+    if mesh_format == "glb":
+        # glTF fixes y as up: the run's world (metrics.json says which) is turned into glTF's axes.
+        world = read_metrics(Path(run_dir) / "metrics.json").world
+        if world is None:
+            raise TambridgeError(f"{Path(run_dir) / 'metrics.json'}: says nothing of the run's world, which a .glb "
+                                 "needs (which way is up); run reconstruct again")
+        rotation = gltf_from_world(UpSource(world.up_source))
+    mesh = convert_mesh(Path(run_dir) / "mesh.ply", output_path, mesh_format, rotation)
     add_to_manifest(Path(run_dir), output_path)
     click.echo(f"wrote {output_path} ({len(mesh.vertices)} vertices, {len(mesh.faces)} triangles)")
 

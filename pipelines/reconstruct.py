@@ -25,10 +25,12 @@ from tambridge.checkpoint import (
     check_resumable,
     checkpoint_path,
     find_checkpoint,
+    remove_checkpoint,
     sequence_fingerprint,
 )
 from tambridge.config import Config, check_config, config_for_camera, to_dict, to_yaml
 from tambridge.device import device_summary, resolve_device
+from tambridge.errors import TambridgeError, TrackingFailedError
 from tambridge.evaluation.exported import ExportedMap
 from tambridge.evaluation.mapping import evaluation_frames, mapping_metrics
 from tambridge.evaluation.metrics import DeviceMetrics, RunMetrics, TrajectoryMetrics, WorldMetrics, write_metrics
@@ -45,7 +47,6 @@ from tambridge.frontend.factory import make_frontend
 from tambridge.io.prefetch import FramePrefetcher
 from tambridge.io.tum import RgbdSequence, find_accelerometer, open_sequence
 from tambridge.mapping.stage import MappingStage
-from tambridge.errors import TambridgeError, TrackingFailedError
 from tambridge.run_folder import RunFolder, Start, UnfinishedRunError, check_output_folder
 from tambridge.runlog import RunLog, peak_memory_mb
 from tambridge.stop import RunStopped, StopRequests, signal_name
@@ -190,7 +191,7 @@ def reconstruct(
                          counters.gaussian_counts)
         write_metrics(output_dir / "metrics.json", metrics)
         # The run is whole: nothing is left to resume.
-        checkpoint_file.unlink(missing_ok=True)
+        remove_checkpoint(output_dir)
         logger.info("finished in %.1f s", metrics.seconds_total)
         return ReconstructResult(world.trajectory(tracking.trajectory), world.trajectory(tracking.keyframe_trajectory),
                                  metrics, output_dir)

@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from tambridge.errors import CameraConfigError
-from tambridge.files import read_text_file, yaml_error_line
+from tambridge.files import CONFIGS_FOLDER, read_text_file, yaml_error_line
 
 if TYPE_CHECKING:
     import torch
@@ -351,7 +351,9 @@ def load_sensor_file(path: Path) -> RgbdSensor:
     """Read a camera file: YAML (``.yaml``/``.yml``) or text lines of ``key value`` with ``#`` comments."""
     path = Path(path)
     if not path.is_file():
-        raise CameraConfigError(f"{path}: camera file not found; pass --camera with a YAML file of {', '.join(_CAMERA_KEYS)}")
+        names = ", ".join(sorted(known.stem for known in (CONFIGS_FOLDER / "cameras").glob("*.yaml"))) or "none"
+        raise CameraConfigError(f"{path}: camera file not found; pass --camera with a YAML file of "
+                                f"{', '.join(_CAMERA_KEYS)}, or a camera's name ({names} in {CONFIGS_FOLDER / 'cameras'})")
     text = read_text_file(path, CameraConfigError)
     if path.suffix.lower() in (".yaml", ".yml"):
         try:

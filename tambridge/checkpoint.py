@@ -85,6 +85,15 @@ def checkpoint_path(output_dir: Path) -> Path:
     return Path(output_dir) / CHECKPOINT_FOLDER / CHECKPOINT_NAME
 
 
+def remove_checkpoint(output_dir: Path) -> None:
+    """Remove the checkpoint of a run into ``output_dir`` (the run is whole), and its folder unless something else
+    lies in it."""
+    path = checkpoint_path(output_dir)
+    path.unlink(missing_ok=True)
+    if path.parent.is_dir() and not any(path.parent.iterdir()):
+        path.parent.rmdir()
+
+
 def _start_over(path: Path) -> str:
     return f"run without --resume to start over (or delete {path.parent}/)"
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import yaml
 
 from tambridge.errors import ConfigError
-from tambridge.files import yaml_error_line
+from tambridge.files import CONFIGS_FOLDER, find_config_file, yaml_error_line
 from tambridge.bridge.config import BridgeConfig
 from tambridge.checkpoint import CheckpointConfig
 from tambridge.evaluation.config import EvaluationConfig
@@ -174,9 +174,11 @@ def load_config(preset: Path | None = None, overrides: typing.Sequence[str] = ()
     :func:`check_config`."""
     config = Config()
     if preset is not None:
-        preset = Path(preset)
+        given, preset = preset, find_config_file(preset)
         if not preset.is_file():
-            raise ConfigError(f"{preset}: config file not found; presets live in configs/ (default, fast, quality, open3d)")
+            names = ", ".join(sorted(path.stem for path in CONFIGS_FOLDER.glob("*.yaml")))
+            raise ConfigError(f"{given}: config file not found; give a YAML file, or a preset's name ({names or 'none'} "
+                              f"in {CONFIGS_FOLDER})")
         try:
             values = yaml.safe_load(preset.read_text()) or {}
         except yaml.YAMLError as error:
@@ -199,6 +201,9 @@ def load_config(preset: Path | None = None, overrides: typing.Sequence[str] = ()
             raise ConfigError(f"--set {override!r}: the value is not valid YAML ({yaml_error_line(error)}); give a "
                               "number, true/false, null or a quoted string") from None
         _apply(config, nested, "")
+    if config.input.camera_file is not None:
+        # The file the run reads, recorded as such in its config.yaml.
+        config.input.camera_file = str(find_config_file(Path(config.input.camera_file), "cameras"))
     return check_config(config)
 
 

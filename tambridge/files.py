@@ -72,6 +72,25 @@ def check_output_file(path: Path, option: str, inputs: Iterable[Path] = (),
         raise TambridgeError(f"{option} {path}: cannot write in {parent}; name a file in a folder you can write")
 
 
+CONFIGS_FOLDER = Path(__file__).resolve().parents[1] / "configs"
+"""The checkout's presets (``*.yaml``) and camera files (``cameras/*.yaml``), beside the package (an editable
+install's, as the README's set-up makes)."""
+
+
+def find_config_file(path: Path, subfolder: str = "") -> Path:
+    """``path`` where it exists; else the checkout's file that it names, so that the README's commands work from any
+    folder: a bare name with or without ``.yaml`` (``fast``, ``7scenes_kinect.yaml``) in ``configs/<subfolder>``,
+    or a path from the checkout's root (``configs/fast.yaml``); else ``path`` as given (its reader names it)."""
+    path = Path(path)
+    if path.exists() or path.is_absolute():
+        return path
+    if len(path.parts) == 1:
+        candidate = CONFIGS_FOLDER / subfolder / (path.name if path.suffix else f"{path.name}.yaml")
+    else:
+        candidate = CONFIGS_FOLDER.parent / path
+    return candidate if candidate.is_file() else path
+
+
 def yaml_error_line(error: Exception) -> str:
     """A YAML parser's error in one line: what is wrong and where (line and column, 1-based)."""
     problem = getattr(error, "problem", None) or str(error).splitlines()[0]

@@ -1,4 +1,5 @@
-"""Live view of a run in rerun (the optional ``viewer`` extra: ``pip install 'tambridge[viewer]'``).
+"""Live view of a run in rerun (the optional ``viewer`` extra: ``pip install -e ".[viewer]"``, or
+``pip install rerun-sdk``).
 
 ``--viewer rerun`` spawns a rerun viewer and streams to it; ``--viewer rerun:run.rrd`` saves a recording that
 ``rerun run.rrd`` opens later. Entities (the world frame is the frontend's: the first camera, OpenCV axes):
@@ -49,7 +50,8 @@ def check_viewer_spec(spec: str) -> Path | None:
     before it touches its output folder."""
     recording_path = parse_viewer_spec(spec)
     if importlib.util.find_spec("rerun") is None:
-        raise ViewerError(f"--viewer {spec}: rerun-sdk is not installed; pip install 'tambridge[viewer]' (or rerun-sdk)")
+        raise ViewerError(f"--viewer {spec}: rerun-sdk is not installed; pip install rerun-sdk (or pip install -e "
+                          "'.[viewer]' in the checkout)")
     return recording_path
 
 

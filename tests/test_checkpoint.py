@@ -108,7 +108,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(synthetic_sequence_dir, 
     assert abs(psnr - full.metrics.map.rendering.novel_views.psnr_db) < 0.5
     assert (killed_dir / "splats.ply").is_file()
     # The finished run leaves nothing to resume; its log holds the killed part and the resumption.
-    assert not checkpoint_path(killed_dir).exists()
+    assert not checkpoint_path(killed_dir).parent.exists()
     log = (killed_dir / "run.log").read_text()
     assert f"checkpoint at frame {written.next_frame}" in log and f"resuming at frame {written.next_frame}" in log
 

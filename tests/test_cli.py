@@ -70,6 +70,20 @@ def test_evaluate_prints_a_table_and_writes_a_plot(synthetic_sequence_dir, tmp_p
     assert json.loads((tmp_path / "m.json").read_text())["ate_rmse_m"] < 1e-9
 
 
+def test_evaluate_in_a_run_folder_lists_its_plot_so_overwrite_removes_it(synthetic_sequence_dir, tmp_path):
+    from tambridge.run_folder import RunFolder, Start, read_manifest
+
+    run = tmp_path / "run"
+    with RunFolder(run, Start.NEW, ["trajectory.txt"]):
+        (run / "trajectory.txt").write_bytes((synthetic_sequence_dir / "groundtruth.txt").read_bytes())
+    result = CliRunner().invoke(main, ["evaluate", str(run / "trajectory.txt"), str(synthetic_sequence_dir / "groundtruth.txt"),
+                                       "--json", str(run / "ate.json")])
+    assert result.exit_code == 0, result.output
+    assert read_manifest(run) == ["trajectory.txt", "trajectory.png", "ate.json"]
+    with RunFolder(run, Start.OVERWRITE, ["trajectory.txt"]):
+        assert sorted(path.name for path in run.iterdir()) == ["manifest.json", "run.lock"]
+
+
 def test_reconstruct_refuses_a_bad_setting_in_one_line_before_writing(synthetic_sequence_dir, tmp_path):
     """What load_config refuses (tests/test_config.py) reaches the user as one line, before any output exists."""
     preset = tmp_path / "p.yaml"
@@ -79,7 +93,8 @@ def test_reconstruct_refuses_a_bad_setting_in_one_line_before_writing(synthetic_
                                (["--config", str(preset), "--set", "mapper.iterations=many"],
                                 "error: mapper.iterations: expected int"),
                                (["--config", str(tmp_path / "missing.yaml")],
-                                f"error: {tmp_path / 'missing.yaml'}: config file not found; presets live in configs/")):
+                                f"error: {tmp_path / 'missing.yaml'}: config file not found; give a YAML file, or a "
+                                "preset's name (default, fast, ")):
         result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out"),
                                            *arguments])
         assert result.exit_code == 2 and result.output.startswith(message), result.output

@@ -73,6 +73,23 @@ def test_the_presets_say_what_they_change():
     assert Config().mapper.sharp_iterations_per_view == 2 < quality.mapper.sharp_iterations_per_view == 4
 
 
+def test_presets_and_camera_files_are_found_by_name_from_any_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # outside the checkout, as a user runs the README's commands
+    for given in ("fast", "fast.yaml", "configs/fast.yaml"):
+        assert load_config(given) == load_config(ROOT / "configs" / "fast.yaml")
+    kinect = str(ROOT / "configs" / "cameras" / "7scenes_kinect.yaml")
+    for given in ("7scenes_kinect", "configs/cameras/7scenes_kinect.yaml"):
+        assert load_config(overrides=[f"input.camera_file={given}"]).input.camera_file == kinect
+    # A file of the user's comes first, under whatever name.
+    (tmp_path / "fast.yaml").write_text("mapper:\n  iterations: 7\n")
+    assert load_config("fast.yaml").mapper.iterations == 7
+    with pytest.raises(ConfigError) as missing:
+        load_config("fastest")
+    assert str(missing.value) == (f"fastest: config file not found; give a YAML file, or a preset's name (default, "
+                                  f"fast, open3d, quality in {ROOT / 'configs'})")
+    assert load_config(overrides=["input.camera_file=mine.yaml"]).input.camera_file == "mine.yaml"
+
+
 @pytest.mark.parametrize("camera_file", sorted((ROOT / "configs" / "cameras").glob("*.yaml")), ids=lambda path: path.name)
 def test_every_camera_file_loads(camera_file):
     # Camera files are not run configs: they go to --camera and are read by tambridge.camera.

@@ -20,7 +20,9 @@ from tambridge.export.mesh import (
 from tambridge.geometry import inverse, transform_points
 from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render
 from tambridge.io.tum import open_sequence
+from tambridge.evaluation.metrics import WorldMetrics, write_metrics
 from tambridge.run_folder import RunFolder, Start
+from tests.test_report import _metrics as run_metrics
 
 MAX_DEPTH_M = 3.0
 
@@ -145,10 +147,21 @@ def test_export_mesh_command(coarse_mesh, tmp_path):
 
     with RunFolder(tmp_path, Start.NEW, ["mesh.ply"]):
         write_mesh(tmp_path / "mesh.ply", coarse_mesh)
-    for _ in range(2):  # a second export replaces the first: the run's manifest lists it
-        result = CliRunner().invoke(main, ["export-mesh", str(tmp_path), "--format", "glb"])
-        assert result.exit_code == 0, result.output
-        assert len(read_mesh(tmp_path / "mesh.glb").vertices) == len(coarse_mesh.vertices)
+    no_world = CliRunner().invoke(main, ["export-mesh", str(tmp_path), "--format", "glb"])
+    assert no_world.exit_code == 2 and "metrics.json: not found" in no_world.output and not (tmp_path / "mesh.glb").exists()
+    for up_source, gltf_from_world in (("floor_plane", [[1, 0, 0], [0, 0, 1], [0, -1, 0]]),
+                                       ("first_camera", [[1, 0, 0], [0, -1, 0], [0, 0, -1]])):
+        world = WorldMetrics(frame="upright", up_source=up_source, upright_from_first_camera=np.eye(4).tolist())
+        write_metrics(tmp_path / "metrics.json", run_metrics(world=world))
+        for _ in range(2):  # a second export replaces the first: the run's manifest lists it
+            result = CliRunner().invoke(main, ["export-mesh", str(tmp_path), "--format", "glb"])
+            assert result.exit_code == 0, result.output
+            # glTF's y is up: the world's up (z, or the first camera's -y) becomes +y.
+            np.testing.assert_allclose(read_mesh(tmp_path / "mesh.glb").vertices,
+                                       np.asarray(coarse_mesh.vertices) @ np.array(gltf_from_world, float).T, atol=1e-6)
+    result = CliRunner().invoke(main, ["export-mesh", str(tmp_path), "--format", "obj"])
+    assert result.exit_code == 0, result.output
+    np.testing.assert_allclose(read_mesh(tmp_path / "mesh.obj").vertices, coarse_mesh.vertices, atol=1e-6)
     # A file that is no output of the run is the user's: refused, untouched.
     (tmp_path / "mine.obj").write_text("mine")
     refused = CliRunner().invoke(main, ["export-mesh", str(tmp_path), "-o", str(tmp_path / "mine.obj")])

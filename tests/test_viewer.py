@@ -6,7 +6,7 @@ import pytest
 from tambridge.io.synthetic import default_camera, loop_path
 from tambridge.viewer import RerunViewer, ViewerError, parse_viewer_spec
 
-rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed (pip install 'tambridge[viewer]')")
+rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed (pip install rerun-sdk)")
 
 
 def _read_chunks(path):

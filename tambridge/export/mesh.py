@@ -162,9 +162,14 @@ def read_mesh(path: Path) -> trimesh.Trimesh:
         raise MeshError(f"{path}: cannot read mesh ({error})") from error
 
 
-def convert_mesh(source: Path, target: Path, format: str | None = None) -> trimesh.Trimesh:
-    """Convert a mesh file to another format (by ``format`` or ``target``'s suffix); returns the mesh."""
+def convert_mesh(source: Path, target: Path, format: str | None = None,
+                 target_from_source: np.ndarray | None = None) -> trimesh.Trimesh:
+    """Convert a mesh file to another format (by ``format`` or ``target``'s suffix), its vertices rotated by
+    ``target_from_source`` (3, 3) where given; returns the mesh written."""
     mesh = read_mesh(source)
+    if target_from_source is not None:
+        mesh = trimesh.Trimesh(vertices=np.asarray(mesh.vertices) @ np.asarray(target_from_source).T, faces=mesh.faces,
+                               vertex_colors=mesh.visual.vertex_colors, process=False)
     write_mesh(target, mesh, format)
     return mesh
 

@@ -77,6 +77,19 @@ class Plane:
     inliers: int
 
 
+GLTF_FROM_UPRIGHT = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+"""glTF's axes (y up, as its specification fixes) from the upright world's (z up): ``(x, y, z) -> (x, z, -y)``."""
+GLTF_FROM_FIRST_CAMERA = np.diag([1.0, -1.0, -1.0])
+"""glTF's axes from the first camera's OpenCV frame (y down, z forward): the first camera then looks along glTF's
+-z, as a glTF camera does."""
+
+
+def gltf_from_world(up_source: UpSource) -> np.ndarray:
+    """The (3, 3) rotation from the exported world that ``up_source`` says (the first camera's frame where it is
+    ``first_camera``, else upright) to glTF's axes."""
+    return GLTF_FROM_FIRST_CAMERA if up_source == UpSource.first_camera else GLTF_FROM_UPRIGHT
+
+
 @dataclasses.dataclass
 class WorldFrame:
     """The exported files' world: ``upright_from_first_camera`` (4, 4) rotation, how its up was found, and the
