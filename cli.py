@@ -51,6 +51,8 @@ OS_ERROR_FIXES = {
     errno.EPERM: "give a path you may read or write, or change its permissions",
     errno.EROFS: "write the outputs to a writable file system (-o)",
     errno.ENAMETOOLONG: "give a shorter path",
+    errno.ENOTDIR: "part of the path is a file, not a folder; give another path",
+    errno.EISDIR: "is a folder; give a file",
 }
 """What a user can do about the system's refusals the CLI reports (by errno); others say to check the path."""
 
@@ -208,17 +210,29 @@ def show_config(preset, overrides) -> None:
 def demo(output_dir, frames, size, preset, overrides) -> None:
     """Make a synthetic sequence with exact ground truth and reconstruct it: the quick check of an install."""
     from pipelines.reconstruct import reconstruct as run
-    from tambridge.run_folder import Start
+    from tambridge.checkpoint import checkpoint_path
+    from tambridge.evaluation.metrics import read_metrics
     from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
+    from tambridge.run_folder import FINISHED_MARKER, Start, check_output_folder
 
     width, height = _parse_size(size)
     config = _resolve_config(preset, overrides, None, None, None)
-    with tempfile.TemporaryDirectory(prefix="tambridge-demo-") as temp:
+    # Before rendering: a folder of other files is refused, and a finished run is replaced only if it was a demo's.
+    check_output_folder(output_dir, Start.OVERWRITE, [str(checkpoint_path(output_dir).relative_to(output_dir))])
+    finished = output_dir / FINISHED_MARKER
+    if finished.is_file() and DEMO_PREFIX not in read_metrics(finished).sequence:
+        raise TambridgeError(f"-o {output_dir}: holds a finished run that is not a demo's; give another -o (the demo "
+                             "replaces only its own earlier run)")
+    with tempfile.TemporaryDirectory(prefix=DEMO_PREFIX) as temp:
         sequence_dir = Path(temp) / "synthetic"
         click.echo(f"rendering a {frames}-frame {width}x{height} synthetic sequence ...")
         write_synthetic_sequence(sequence_dir, SynthOptions(frame_count=frames, width=width, height=height, seed=config.seed))
         # The demo is the install check a user repeats: it replaces its own earlier run (only the files it wrote).
         _print_run_summary(run(sequence_dir, output_dir, config, start=Start.OVERWRITE))
+
+
+DEMO_PREFIX = "tambridge-demo-"
+"""The demo's temporary sequence folder starts so; a finished run's metrics.json names its sequence folder."""
 
 
 def _parse_size(size: str) -> tuple[int, int]:

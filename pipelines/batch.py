@@ -36,7 +36,8 @@ from tqdm import tqdm
 
 import tambridge
 from tambridge.batch.sequences import BatchSequence
-from tambridge.batch.summary import SequenceRow, Status, is_finished, read_rows, with_metrics, write_summary
+from tambridge.batch.summary import (SequenceRow, Status, check_batch_folder, is_finished, read_rows, with_metrics,
+                                     write_summary)
 from tambridge.checkpoint import checkpoint_path
 from tambridge.errors import INPUT_ERROR_STATUS, TambridgeError
 
@@ -205,8 +206,9 @@ def run_batch(sequences: Sequence[BatchSequence], out_dir: Path, options: BatchO
     # Here, not at the top: Ray workers import this module for run_sequence, and the config layer imports torch.
     from tambridge.config import check_config, load_config
 
-    # A bad preset or --set stops the batch here, not in every task.
+    # A bad preset or --set, or an output folder that is not the batch's, stops it here, not in every task.
     check_config(load_config(options.preset, options.overrides))
+    check_batch_folder(out_dir, sequences)
     out_dir = Path(out_dir).resolve()
     preset = None if options.preset is None else str(Path(options.preset).resolve())
     batch = {"output": str(out_dir), "started": _now(), "finished": None, "address": options.address,

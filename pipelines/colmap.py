@@ -14,7 +14,8 @@ import time
 from pathlib import Path
 
 from tambridge.errors import TambridgeError, TrajectoryEvaluationError
-from tambridge.evaluation.colmap import ColmapOptions, run_colmap, write_monocular_trajectory
+from tambridge.evaluation.colmap import (MIN_COLMAP_IMAGES, ColmapError, ColmapOptions, run_colmap,
+                                         write_monocular_trajectory)
 from tambridge.evaluation.plots import plot_trajectory_errors
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory
 from tambridge.files import atomic_write_text, check_output_file
@@ -55,11 +56,16 @@ def colmap(
     if others:
         raise TambridgeError(f"-o {output_dir}: holds files this command did not write ({', '.join(others[:3])}); give "
                              "a new folder or one of an earlier tambridge colmap")
-    output_dir.mkdir(parents=True, exist_ok=True)
-    (output_dir / "metrics.json").unlink(missing_ok=True)
+    if len(sequence) < MIN_COLMAP_IMAGES:
+        raise ColmapError(f"{sequence_dir}: COLMAP needs at least {MIN_COLMAP_IMAGES} images, --every {every} gives "
+                          f"{len(sequence)}; use a smaller --every")
     started = time.perf_counter()
     result = run_colmap((frame.rgb for frame in sequence), sequence.timestamps_s, sequence.camera, options)
     seconds = time.perf_counter() - started
+    # An earlier result stays whole until COLMAP has given a new one; metrics.json, written last, marks it whole.
+    output_dir.mkdir(parents=True, exist_ok=True)
+    (output_dir / "metrics.json").unlink(missing_ok=True)
+    (output_dir / "trajectory.png").unlink(missing_ok=True)
     write_monocular_trajectory(output_dir / "trajectory.txt", result.trajectory)
     metrics = {
         "sequence": str(sequence_dir),

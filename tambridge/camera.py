@@ -245,13 +245,19 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
                                 f"{', '.join(_CAMERA_KEYS)} and depth_scale (raw depth units per metre: TUM 5000, "
                                 "millimetres 1000)")
     _check_numbers(values, source)
+    d_keys = [f"d{i}" for i in range(5) if f"d{i}" in values]
+    if d_keys and "distortion" in values:
+        raise CameraConfigError(f"{source}: gives distortion and {', '.join(d_keys)}; give the coefficients one way")
+    invalid = values.get("depth_invalid")
+    if invalid is not None and not (float(invalid).is_integer() and 0 <= float(invalid) <= 65535):
+        raise CameraConfigError(f"{source}: depth_invalid is {invalid!r}; expected the raw 16-bit value (an integer "
+                                "0-65535) that marks a pixel without depth")
     try:
         distortion = values.get("distortion") or [values.get(f"d{i}", 0.0) for i in range(5)]
         camera = _camera_from_values(values, "")
         camera = dataclasses.replace(camera, distortion=tuple(float(c) for c in distortion),
                                      rolling_shutter_s=float(values.get("rolling_shutter_s") or 0.0))
         colour_camera, colour_from_depth = _colour_camera_from_values(values, camera, source)
-        invalid = values.get("depth_invalid")
         sensor = RgbdSensor(
             camera=camera,
             depth_scale=float(values["depth_scale"]),
@@ -293,6 +299,8 @@ def _check_numbers(values: dict, source: Path) -> None:
     for key, value in values.items():
         if value is None:
             continue
+        if key in _LIST_KEYS and not isinstance(value, (list, tuple)):
+            raise CameraConfigError(f"{source}: {key} is {value!r}; expected a list of numbers")
         numbers = np.ravel(np.asarray(value, dtype=object)) if key in _LIST_KEYS else [value]
         for number in numbers:
             try:
@@ -319,7 +327,8 @@ def _camera_from_values(values: dict, prefix: str) -> Camera:
 
 def _colour_camera_from_values(values: dict, depth_camera: Camera, source: Path) -> tuple[Camera | None, np.ndarray | None]:
     """``(colour_camera, colour_from_depth)`` of an unregistered sensor's file, or ``(None, None)``."""
-    given = [key for key in _COLOUR_KEYS if key in values]
+    # Any colour_ key says the colour camera is another one: the optional ones alone would be dropped unseen.
+    given = [key for key in values if str(key).startswith("colour_")]
     if not given:
         return None, None
     missing = [key for key in _COLOUR_KEYS if key not in values]

@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import json
 import os
+import re
 import secrets
 import shutil
 import signal
@@ -21,7 +22,7 @@ import pytest
 
 from pipelines.batch import Attempt, error_line, worth_retrying
 from tambridge.batch.sequences import resolve_sequences
-from tambridge.batch.summary import SUMMARY_VERSION, SequenceRow, Status, write_summary
+from tambridge.batch.summary import SUMMARY_VERSION, SequenceRow, Status, check_batch_folder, write_summary
 from tambridge.checkpoint import checkpoint_path
 from tambridge.errors import TambridgeError
 from tambridge.evaluation.metrics import read_metrics
@@ -96,6 +97,26 @@ def test_sequences_must_be_sequence_folders(tmp_path):
         resolve_sequences([str(tmp_path / "*")])
     assert str(refused.value) == (f"{tmp_path / 'notes'}: not a sequence folder (no rgb.txt or depth.txt); leave it "
                                   "out of the batch's folders, patterns and list files")
+
+
+def test_the_batch_writes_only_into_a_new_empty_or_batch_folder(tmp_path):
+    data = tmp_path / "data"
+    for name in ("a", "b"):
+        (data / name).mkdir(parents=True)
+        (data / name / "rgb.txt").write_text("")
+    sequences = resolve_sequences([str(data / "*")])
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "index.html").write_text("mine")
+    (tmp_path / "file").write_text("x")
+    for out_dir, message in ((tmp_path / "mine", "is not empty and holds no batch (summary.json)"),
+                             (tmp_path / "file", "is a file; give a folder"),
+                             (data, "would write sequence a's run into the sequence folder itself")):
+        with pytest.raises(TambridgeError, match=re.escape(f"-o {out_dir}: {message}")):
+            check_batch_folder(out_dir, sequences)
+    assert (tmp_path / "mine" / "index.html").read_text() == "mine"
+    write_summary(tmp_path / "earlier", [], {})
+    for out_dir in (tmp_path / "new", tmp_path / "earlier"):
+        check_batch_folder(out_dir, sequences)
 
 
 def test_a_failed_run_is_retried_unless_it_refused_its_input():

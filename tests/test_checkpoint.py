@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import builtins
 import collections
+import hashlib
 import json
 import math
 import os
@@ -163,6 +164,23 @@ def test_resume_refuses_another_folder_or_content_with_the_same_timestamps(synth
     with open(copy / "groundtruth.txt", "a") as handle:
         handle.write("# edited\n")
     refuse(copy, r"another sequence \(other groundtruth\.txt\)")
+
+
+def test_images_listed_by_absolute_paths_are_fingerprinted_by_them(synthetic_sequence_dir, tmp_path):
+    """rgb.txt and depth.txt may name their images anywhere: by absolute paths, inside the folder or not."""
+    listing = tmp_path / "listing"
+    listing.mkdir()
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt", "camera.yaml"):
+        lines = (synthetic_sequence_dir / name).read_text().splitlines()
+        if name in ("rgb.txt", "depth.txt"):
+            lines = [line if line.startswith("#") else
+                     f"{line.split()[0]} {(synthetic_sequence_dir / line.split()[1]).resolve()}" for line in lines]
+        (listing / name).write_text("\n".join(lines) + "\n")
+    fingerprint = sequence_fingerprint(open_sequence(listing))
+    first_rgb = open_sequence(synthetic_sequence_dir).rgb_paths[0].resolve()
+    assert fingerprint["files_sha256"][str(first_rgb)] == hashlib.sha256(first_rgb.read_bytes()).hexdigest()
+    check_resumable(tmp_path / "checkpoint.npz", _checkpoint({}, fingerprint), {},
+                    sequence_fingerprint(open_sequence(listing)))
 
 
 def _write_archive(path: Path, document, **arrays) -> None:

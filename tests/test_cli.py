@@ -127,6 +127,18 @@ def test_download_fetches_and_unpacks_from_a_local_mirror(synthetic_sequence_dir
         missing = CliRunner().invoke(main, ["download", "fr2/nothing", "--to", str(tmp_path / "data"), "--base-url", base_url])
         assert missing.exit_code == 2 and "download failed" in missing.output
         assert not (tmp_path / "data" / "rgbd_dataset_freiburg2_nothing").exists()
+        # A failed download into a new folder leaves none behind.
+        missing = CliRunner().invoke(main, ["download", "fr2/nothing", "--to", str(tmp_path / "new" / "data"),
+                                            "--base-url", base_url])
+        assert missing.exit_code == 2 and not (tmp_path / "new").exists()
+        # A folder of the sequence's name that holds no sequence is the user's: refused before the download, kept.
+        mine = tmp_path / "mine" / "rgbd_dataset_freiburg1_desk"
+        mine.mkdir(parents=True)
+        (mine / "notes.txt").write_text("precious")
+        refused = CliRunner().invoke(main, ["download", "fr1/desk", "--to", str(tmp_path / "mine"), "--base-url", base_url])
+        assert refused.output == (f"error: {mine}: exists and holds no sequence (no rgb.txt); move it away or give "
+                                  "another --to\n")
+        assert refused.exit_code == 2 and sorted(path.name for path in mine.iterdir()) == ["notes.txt"]
     finally:
         server.shutdown()
     bad_name = CliRunner().invoke(main, ["download", "desk", "--to", str(tmp_path / "data")])
@@ -244,6 +256,30 @@ def test_a_full_disk_or_a_refused_path_is_one_line_with_what_to_do(synthetic_seq
         result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out")])
         assert result.exit_code == 2
         assert result.output == f"error: {tmp_path / 'out' / 'splats.ply'}: {strerror}; {fix}\n"
+
+
+@pytest.mark.slow
+def test_demo_replaces_only_its_own_run_and_refuses_others_before_rendering(tmp_path):
+    from tambridge.evaluation.metrics import write_metrics
+    from tambridge.run_folder import RunFolder, Start
+    from tests.test_report import _metrics as run_metrics
+
+    demo = ["demo", "--frames", "30", "--size", "160x120", "--set", "mesh.enabled=false"]
+    for _ in range(2):  # the second replaces the first
+        result = CliRunner().invoke(main, [*demo, "-o", str(tmp_path / "demo")])
+        assert result.exit_code == 0, result.output
+        assert read_metrics(tmp_path / "demo" / "metrics.json").trajectory.ate_rmse_m < 0.03
+    other = tmp_path / "other"
+    with RunFolder(other, Start.NEW, ["metrics.json"]):
+        write_metrics(other / "metrics.json", run_metrics(sequence="/data/my_sequence"))
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("mine")
+    for folder, message in ((other, f"-o {other}: holds a finished run that is not a demo's; give another -o"),
+                            (tmp_path / "mine", f"{tmp_path / 'mine'}: is not empty and holds no tambridge run")):
+        before = {path: path.read_bytes() for path in folder.iterdir()}
+        result = CliRunner().invoke(main, [*demo, "-o", str(folder)])
+        assert result.exit_code == 2 and result.output.startswith(f"error: {message}"), result.output
+        assert {path: path.read_bytes() for path in folder.iterdir()} == before
 
 
 def test_a_bad_viewer_is_refused_before_the_output_folder_is_made(synthetic_sequence_dir, tmp_path):

@@ -48,6 +48,13 @@ def test_colmap_refuses_a_bad_output_folder_before_running(synthetic_sequence_di
         with pytest.raises(TambridgeError, match=message):
             colmap(synthetic_sequence_dir, output, every=1)
     assert sorted(path.name for path in tmp_path.rglob("*")) == ["a_file", "notes.txt", "other"]
+    # Too few frames for COLMAP: refused before anything of an earlier result goes, and no new folder made.
+    (tmp_path / "earlier").mkdir()
+    (tmp_path / "earlier" / "metrics.json").write_text("{}")
+    for output in (tmp_path / "earlier", tmp_path / "new"):
+        with pytest.raises(ColmapError, match=r"COLMAP needs at least 3 images, --every 15 gives 2; use a smaller --every"):
+            colmap(synthetic_sequence_dir, output, every=15)
+    assert (tmp_path / "earlier" / "metrics.json").read_text() == "{}" and not (tmp_path / "new").exists()
 
 
 @pytest.mark.slow

@@ -73,6 +73,16 @@ def test_the_presets_say_what_they_change():
     assert Config().mapper.sharp_iterations_per_view == 2 < quality.mapper.sharp_iterations_per_view == 4
 
 
+def test_a_preset_that_is_not_utf8_is_refused_naming_it(tmp_path):
+    (tmp_path / "latin1.yaml").write_bytes("mapper:\n  iterations: 5 # caf\u00e9\n".encode("latin-1"))
+    (tmp_path / "utf16.yaml").write_bytes("mapper:\n  iterations: 5\n".encode("utf-16"))
+    for name, message in (("latin1.yaml", "is not UTF-8 text (byte 0xe9 at offset 29); save it as UTF-8"),
+                          ("utf16.yaml", "is UTF-16 text; save it as UTF-8")):
+        with pytest.raises(ConfigError) as refused:
+            load_config(tmp_path / name)
+        assert str(refused.value).startswith(f"{tmp_path / name}: {message}")
+
+
 def test_presets_and_camera_files_are_found_by_name_from_any_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # outside the checkout, as a user runs the README's commands
     for given in ("fast", "fast.yaml", "configs/fast.yaml"):

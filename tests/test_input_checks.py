@@ -71,6 +71,21 @@ def test_a_camera_key_that_is_not_a_number_is_refused_by_name(tmp_path, key, val
         load_sensor_file(path)
 
 
+@pytest.mark.parametrize("extra, message", [
+    ({"distortion": 0.1}, "distortion is 0.1; expected a list of numbers"),
+    ({"distortion": [0.1, 0, 0, 0, 0], "d0": 0.2}, "gives distortion and d0; give the coefficients one way"),
+    ({"depth_invalid": 1.5}, "depth_invalid is 1.5; expected the raw 16-bit value (an integer 0-65535)"),
+    ({"depth_invalid": 70000}, "depth_invalid is 70000; expected the raw 16-bit value"),
+    ({"colour_width": 320}, "has colour_width but not colour_fx, colour_fy, colour_cx, colour_cy, colour_from_depth"),
+])
+def test_a_camera_value_that_would_be_dropped_or_misread_is_refused(tmp_path, extra, message):
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump({**CAMERA, **extra}))
+    with pytest.raises(CameraConfigError) as refused:
+        load_sensor_file(path)
+    assert str(refused.value).startswith(f"{path}: {message}")
+
+
 def test_principal_point_outside_the_image_is_refused(tmp_path):
     path = tmp_path / "camera.yaml"
     path.write_text(yaml.safe_dump({**CAMERA, "cx": 80.0}))

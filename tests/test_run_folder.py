@@ -232,7 +232,8 @@ def test_an_output_folder_that_cannot_be_made_is_one_line(synthetic_sequence_dir
     result = _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "file" / "out"), "--quiet",
                    *_set(FAST)])
     assert result.exit_code == 2, result.output
-    assert result.output.strip() == f"error: {tmp_path / 'file' / 'out'}: Not a directory"
+    assert result.output.strip() == (f"error: {tmp_path / 'file' / 'out'}: Not a directory; part of the path is a "
+                                     "file, not a folder; give another path")
 
 
 def test_a_sequence_where_no_frame_tracks_ends_with_an_error_not_an_identity_trajectory(tmp_path):

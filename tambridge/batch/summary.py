@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 from typing import Sequence
 
+from tambridge.batch.sequences import BatchSequence
 from tambridge.errors import TambridgeError
 from tambridge.evaluation.metrics import read_metrics
 from tambridge.files import atomic_write_text
@@ -99,6 +100,21 @@ def is_finished(run_dir: Path) -> bool:
     except TambridgeError:
         return False
     return True
+
+
+def check_batch_folder(out_dir: Path, sequences: Sequence[BatchSequence]) -> None:
+    """Raise :class:`TambridgeError` unless a batch may write into ``out_dir``: new, empty, or an earlier batch's
+    (with its summary.json), and no sequence's folder its own output folder ``out_dir/<name>``."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise TambridgeError(f"-o {out_dir}: is a file; give a folder")
+    for sequence in sequences:
+        if (out_dir / sequence.name).resolve() == Path(sequence.folder).resolve():
+            raise TambridgeError(f"-o {out_dir}: would write sequence {sequence.name}'s run into the sequence folder "
+                                 "itself; give another -o")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / SUMMARY_JSON).is_file():
+        raise TambridgeError(f"-o {out_dir}: is not empty and holds no batch ({SUMMARY_JSON}); give a new or empty "
+                             "folder, or an earlier batch's to go on with it")
 
 
 def read_rows(out_dir: Path) -> dict[str, SequenceRow]:

@@ -71,6 +71,10 @@ class ColmapResult:
         return len(self.trajectory)
 
 
+MIN_COLMAP_IMAGES = 3
+"""The fewest images handed to COLMAP's incremental mapper: fewer cannot make a model worth scoring."""
+
+
 def run_colmap(
     images_rgb: Iterable[np.ndarray],
     timestamps_s: Sequence[float],
@@ -85,8 +89,9 @@ def run_colmap(
     temporary folder, removed afterwards, when None).
     Raises :class:`ColmapError` when no model of at least three images comes out.
     """
-    if len(timestamps_s) < 3:
-        raise ColmapError(f"COLMAP needs at least 3 images, got {len(timestamps_s)}; use a smaller --every")
+    if len(timestamps_s) < MIN_COLMAP_IMAGES:
+        raise ColmapError(f"COLMAP needs at least {MIN_COLMAP_IMAGES} images, got {len(timestamps_s)}; use a smaller "
+                          "--every")
     if workspace is None:
         with tempfile.TemporaryDirectory(prefix="tambridge-colmap-") as temp:
             return run_colmap(images_rgb, timestamps_s, camera, options, Path(temp))

@@ -30,7 +30,7 @@ from tambridge.evaluation.exported import ExportedMap  # noqa: E402
 from tambridge.evaluation.metrics import RunMetrics, metrics_json, read_metrics  # noqa: E402
 from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
 from tambridge.evaluation.trajectory import (  # noqa: E402
-    WORST_WINDOW_S, TrajectoryErrors, evaluate_trajectory, worst_error_window,
+    WORST_WINDOW_S, TrajectoryErrors, TrajectoryEvaluationError, evaluate_trajectory, worst_error_window,
 )
 from tambridge.export.web_viewer import RUN_VIEWER_FOLDER, VIEWER_FILES, write_run_viewer  # noqa: E402
 from tambridge.files import atomic_path, atomic_write_text  # noqa: E402
@@ -146,13 +146,17 @@ def report_from_run(run_dir: Path) -> Path:
     ground_truth_path = Path(metrics.sequence) / "groundtruth.txt"
     if ground_truth_path.is_file():
         ground_truth = read_tum_trajectory(ground_truth_path)
-        errors["tambridge (SE(3))"] = evaluate_trajectory(read_tum_trajectory(run_dir / "trajectory.txt"), ground_truth, "se3")
+        estimates = {"tambridge (SE(3))": (run_dir / "trajectory.txt", "se3")}
         colmap_path = run_dir / "colmap" / "trajectory.txt"
         if colmap_path.is_file():
             align = "sim3" if is_monocular_trajectory_file(colmap_path) else "se3"
-            errors[f"COLMAP ({'Sim(3)' if align == 'sim3' else 'SE(3)'})"] = evaluate_trajectory(
-                read_tum_trajectory(colmap_path), ground_truth, align
-            )
+            estimates[f"COLMAP ({'Sim(3)' if align == 'sim3' else 'SE(3)'})"] = (colmap_path, align)
+        for name, (path, align) in estimates.items():
+            try:
+                errors[name] = evaluate_trajectory(read_tum_trajectory(path), ground_truth, align)
+            except TrajectoryEvaluationError as error:
+                # As the run itself did (metrics.json trajectory_unavailable): the report goes without that ATE.
+                logger.warning("%s: no ATE against %s: %s", path, ground_truth_path, error)
     return write_report(run_dir / "report", metrics, errors, title=f"tambridge: {metrics.sequence}",
                         web_viewer=(run_dir / RUN_VIEWER_FOLDER / "index.html").is_file())
 

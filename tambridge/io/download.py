@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import shutil
 import tarfile
 import tempfile
 import urllib.parse
@@ -46,7 +45,23 @@ def download_tum(name: str, destination: Path, base_url: str = TUM_BASE_URL, pro
     target = destination / folder_name
     if (target / "rgb.txt").is_file():
         return target
+    if destination.exists() and not destination.is_dir():
+        raise DownloadError(f"--to {destination}: is a file; give a folder")
+    if target.exists() and (not target.is_dir() or any(target.iterdir())):
+        raise DownloadError(f"{target}: exists and holds no sequence (no rgb.txt); move it away or give another --to")
+    made = [folder for folder in (destination, *destination.parents) if not folder.exists()]
     destination.mkdir(parents=True, exist_ok=True)
+    try:
+        return _download_into(url, folder_name, destination, target, progress)
+    except BaseException:
+        # A failed download leaves no folder behind that it made.
+        for folder in made:
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+        raise
+
+
+def _download_into(url: str, folder_name: str, destination: Path, target: Path, progress: bool) -> Path:
     with tempfile.TemporaryDirectory(prefix=f".{folder_name}.", dir=destination) as temp:
         archive = Path(temp) / "archive.tgz"
         try:
@@ -68,6 +83,6 @@ def download_tum(name: str, destination: Path, base_url: str = TUM_BASE_URL, pro
         if len(found) != 1:
             raise DownloadError(f"{url}: archive holds {len(found)} sequences (folders with rgb.txt), expected one")
         if target.exists():
-            shutil.rmtree(target)
+            target.rmdir()  # empty: checked before the download
         found[0].rename(target)
     return target
