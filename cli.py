@@ -239,9 +239,9 @@ def _parse_size(size: str) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in size.lower().split("x"))
     except ValueError:
-        raise click.BadParameter(f"{size!r}: expected WIDTHxHEIGHT, e.g. 160x120") from None
+        raise click.BadParameter(f"{size!r}: expected WIDTHxHEIGHT, e.g. 160x120", param_hint="--size") from None
     if width < 16 or height < 16:
-        raise click.BadParameter(f"{size!r}: images must be at least 16x16")
+        raise click.BadParameter(f"{size!r}: images must be at least 16x16", param_hint="--size")
     return width, height
 
 
@@ -398,6 +398,9 @@ def export(run_dir, export_format, output_dir, frames, images, text) -> None:
 
     result = export_run(run_dir, output_dir, export_format, frames, images, text)
     tracks = f" ({result.observations} observations in their tracks)" if result.observations else ""
+    if result.observations == 0:
+        # Tracks come from the keyframes' observations: other frames, or fewer than two keyframes, give none.
+        tracks = " (none with a track: fewer than two of these images are keyframes; --frames keyframes gives tracks)"
     click.echo(f"wrote {result.images} images and {result.points} points{tracks} to {result.output_dir}")
     click.echo(f"points: {result.points_source}")
 

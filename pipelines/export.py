@@ -64,8 +64,8 @@ class Points:
 
 @dataclasses.dataclass
 class ExportResult:
-    """The folder written, its image and point counts, where the points came from, and (COLMAP only, else None) the
-    point observations the model's tracks hold."""
+    """The folder written, its image and point counts, where the points came from, and (COLMAP with points that
+    have tracks, else None) the point observations the model's tracks hold."""
 
     output_dir: Path
     images: int
@@ -105,7 +105,8 @@ def export_run(run_dir: Path, output_dir: Path | None = None, format: str = "col
             shutil.rmtree(staging)
     logger.info("exported %d images and %d points (%s) to %s", len(frame_indices), len(points.world_m), points.source,
                 output_dir)
-    return ExportResult(output_dir, len(frame_indices), len(points.world_m), points.source, observations)
+    return ExportResult(output_dir, len(frame_indices), len(points.world_m), points.source,
+                        observations if points.tracked else None)
 
 
 def read_run(run_dir: Path) -> RunRecord:

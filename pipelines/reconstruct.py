@@ -45,7 +45,7 @@ from tambridge.files import atomic_write_text
 from tambridge.frontend.contract import Frontend, FrontendResult
 from tambridge.frontend.factory import make_frontend
 from tambridge.io.prefetch import FramePrefetcher
-from tambridge.io.tum import RgbdSequence, find_accelerometer, open_sequence
+from tambridge.io.tum import MAX_ASSOCIATION_DIFFERENCE_S, RgbdSequence, find_accelerometer, open_sequence
 from tambridge.mapping.stage import MappingStage
 from tambridge.run_folder import RunFolder, Start, UnfinishedRunError, check_output_folder
 from tambridge.runlog import RunLog, peak_memory_mb
@@ -138,6 +138,9 @@ def reconstruct(
         run_log.add_seconds("read", read_seconds)
         logger.info("reconstructing %s into %s: %d frames, camera %s", sequence.folder, output_dir, len(sequence),
                     sequence.camera)
+        if sequence.colour_frames_without_depth:
+            logger.info("%d colour images of rgb.txt have no depth image within %g s: left out",
+                        sequence.colour_frames_without_depth, MAX_ASSOCIATION_DIFFERENCE_S)
         atomic_write_text(output_dir / "config.yaml", to_yaml(config))
         frontend = make_frontend(config.frontend, sequence.camera)
         mapping = MappingStage(sequence, config.mapper, config.bridge, run_log, device, config.seed,

@@ -359,6 +359,8 @@ def _colour_camera_from_values(values: dict, depth_camera: Camera, source: Path)
 def load_sensor_file(path: Path) -> RgbdSensor:
     """Read a camera file: YAML (``.yaml``/``.yml``) or text lines of ``key value`` with ``#`` comments."""
     path = Path(path)
+    if path.is_dir():
+        raise CameraConfigError(f"{path}: is a folder; pass --camera the camera file (camera.yaml) itself")
     if not path.is_file():
         names = ", ".join(sorted(known.stem for known in (CONFIGS_FOLDER / "cameras").glob("*.yaml"))) or "none"
         raise CameraConfigError(f"{path}: camera file not found; pass --camera with a YAML file of "

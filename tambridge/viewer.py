@@ -22,6 +22,7 @@ import numpy as np
 
 from tambridge.camera import Camera
 from tambridge.errors import TambridgeError
+from tambridge.files import check_output_file
 from tambridge.frontend.contract import FrontendResult
 from tambridge.images import rgb_uint8
 from tambridge.io.tum import RgbdSequence
@@ -49,6 +50,8 @@ def check_viewer_spec(spec: str) -> Path | None:
     """:func:`parse_viewer_spec`, and a :class:`ViewerError` where rerun-sdk is not installed: what a run checks
     before it touches its output folder."""
     recording_path = parse_viewer_spec(spec)
+    if recording_path is not None:
+        check_output_file(recording_path, "--viewer")
     if importlib.util.find_spec("rerun") is None:
         raise ViewerError(f"--viewer {spec}: rerun-sdk is not installed; pip install rerun-sdk (or pip install -e "
                           "'.[viewer]' in the checkout)")

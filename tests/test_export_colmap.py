@@ -369,7 +369,7 @@ def test_open3d_run_exports_the_mesh_vertices_as_points(sequence_dir, tmp_path):
     model = pycolmap.Reconstruction(str(tmp_path / "colmap" / "sparse" / "0"))
     mesh = read_mesh(run / "mesh.ply")
     assert model.num_points3D() == len(mesh.vertices) > 100 and model.num_images() == 8
-    assert model.compute_num_observations() == 0
+    assert model.compute_num_observations() == 0 and result.observations is None
 
 
 def test_cli_export_prints_what_it_wrote(run_dir, tmp_path):
@@ -378,6 +378,11 @@ def test_cli_export_prints_what_it_wrote(run_dir, tmp_path):
     assert result.exit_code == 0, result.output
     assert "wrote 5 images" in result.output and "ORB frontend's map points" in result.output
     assert (tmp_path / "out" / "sparse" / "0" / "points3D.txt").is_file()
+    # One image (frame 0) is one keyframe: no point has a track, and the summary says so.
+    single = CliRunner().invoke(main, ["export", str(run_dir), "--format", "colmap", "-o", str(tmp_path / "single"),
+                                       "--frames", "every:1000"])
+    assert single.exit_code == 0, single.output
+    assert "(none with a track: fewer than two of these images are keyframes" in single.output
 
 
 def _refused(arguments, tmp_path) -> str:

@@ -86,6 +86,11 @@ def test_a_camera_value_that_would_be_dropped_or_misread_is_refused(tmp_path, ex
     assert str(refused.value).startswith(f"{path}: {message}")
 
 
+def test_a_camera_path_that_is_a_folder_is_refused_as_such(tmp_path):
+    with pytest.raises(CameraConfigError, match=r": is a folder; pass --camera the camera file \(camera\.yaml\) itself$"):
+        load_sensor_file(tmp_path)
+
+
 def test_principal_point_outside_the_image_is_refused(tmp_path):
     path = tmp_path / "camera.yaml"
     path.write_text(yaml.safe_dump({**CAMERA, "cx": 80.0}))

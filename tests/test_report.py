@@ -141,25 +141,6 @@ def test_reconstruct_run_report_shows_the_run_metrics(browser, synthetic_sequenc
     assert rebuilt["cells"] == page["cells"]
 
 
-@pytest.mark.slow
-def test_the_report_of_a_run_without_ate_is_rebuilt_without_it(synthetic_sequence_dir, tmp_path):
-    """Ground truth on another clock: the run finished without ATE (trajectory_unavailable); so does its report."""
-    from pipelines.reconstruct import reconstruct
-    from tambridge.config import load_config
-
-    sequence = tmp_path / "sequence"
-    shutil.copytree(synthetic_sequence_dir, sequence)
-    truth = np.loadtxt(sequence / "groundtruth.txt")
-    truth[:, 0] += 1000.0
-    np.savetxt(sequence / "groundtruth.txt", truth, fmt="%.9f")
-    reconstruct(sequence, tmp_path / "run", load_config(None, ["mapper.enabled=false", "mesh.enabled=false",
-                                                               "input.max_frames=12"]), progress=False)
-    assert read_metrics(tmp_path / "run" / "metrics.json").trajectory_unavailable.startswith("only 0 of 12")
-    (tmp_path / "run" / "report" / "index.html").unlink()
-    page = report_from_run(tmp_path / "run").read_text()
-    assert "only 0 of 12" in page
-
-
 def test_metrics_files_round_trip_and_bad_ones_are_refused_in_one_line(tmp_path):
     path = tmp_path / "metrics.json"
     metrics = _metrics(trajectory=TrajectoryMetrics(alignment="se3", pose_count=30, ate_rmse_m=0.02, ate_mean_m=0.01,

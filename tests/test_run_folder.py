@@ -23,6 +23,7 @@ from pipelines.reconstruct import reconstruct
 from tambridge.checkpoint import checkpoint_path
 from tambridge.config import load_config
 from tambridge.evaluation.metrics import read_metrics
+from tambridge.evaluation.report import report_from_run
 from tambridge.run_folder import LOCK_NAME, MANIFEST_NAME, OutputFolderError, RunFolder, Start, read_manifest
 from tambridge.trajectory import read_tum_trajectory
 
@@ -207,6 +208,9 @@ def test_ground_truth_on_another_clock_leaves_the_results_and_says_why(synthetic
     assert metrics.trajectory is None and result.metrics.trajectory is None
     assert metrics.trajectory_unavailable.startswith("only 0 of 12 estimated poses lie within 0.02 s of a reference pose")
     assert (tmp_path / "out" / "trajectory.txt").is_file() and (tmp_path / "out" / "splats.ply").is_file()
+    # `tambridge report` rebuilds it the same way: without ATE, saying why.
+    (tmp_path / "out" / "report" / "index.html").unlink()
+    assert "only 0 of 12 estimated poses" in report_from_run(tmp_path / "out").read_text()
 
 
 def test_report_from_another_folder_finds_the_sequence(finished_run, synthetic_sequence_dir, tmp_path, monkeypatch):

@@ -97,3 +97,14 @@ def test_nearest_poses_match_a_search_over_every_pose():
     np.testing.assert_array_equal(picked.world_from_camera, reference.world_from_camera[rows])
     single = Trajectory(reference.timestamps_s[:1], reference.world_from_camera[:1])
     assert len(single.nearest(queries[:5])) == 5
+
+
+def test_too_few_poses_or_none_on_the_clock_are_told_apart():
+    from tambridge.errors import TrajectoryEvaluationError
+
+    poses = loop_path(10)
+    truth = Trajectory(np.arange(10) / 30.0, poses)
+    with pytest.raises(TrajectoryEvaluationError, match=r"^the estimate has 2 poses; ATE needs at least 3"):
+        evaluate_trajectory(Trajectory(truth.timestamps_s[:2], poses[:2]), truth)
+    with pytest.raises(TrajectoryEvaluationError, match=r"^only 0 of 10 estimated poses lie within 0.02 s"):
+        evaluate_trajectory(Trajectory(truth.timestamps_s + 100.0, poses), truth)

@@ -89,6 +89,9 @@ def evaluate_trajectory(
     except sync.SyncException:
         evo_est = None
     matched = 0 if evo_est is None else evo_est.num_poses
+    if len(traj_est) < 3:
+        raise TrajectoryEvaluationError(f"the estimate has {len(traj_est)} poses; ATE needs at least 3 (an alignment "
+                                        "is fitted to them)")
     if matched < 3:
         raise TrajectoryEvaluationError(
             f"only {matched} of {len(traj_est)} estimated poses lie within {max_time_difference_s} s of a reference "

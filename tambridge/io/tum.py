@@ -156,8 +156,11 @@ class RgbdSequence:
         ground_truth: Trajectory | None,
         gt_rgb_paths: list[Path] | None = None,
         depth_timestamps_s: np.ndarray | None = None,
+        colour_frames_without_depth: int = 0,
     ) -> None:
         self.folder = folder
+        # Colour images of rgb.txt that no depth image lies near (MAX_ASSOCIATION_DIFFERENCE_S): left out.
+        self.colour_frames_without_depth = colour_frames_without_depth
         self.sensor = sensor
         self.rgb_paths = rgb_paths
         # Sharp ground-truth colour images, one per frame (``gt_rgb/``), or None: see :meth:`sharp_rgb`.
@@ -346,6 +349,7 @@ def open_sequence(
             f"timestamp in depth.txt (rgb {rgb_stamps[0]:.3f}..{rgb_stamps[-1]:.3f}, "
             f"depth {depth_stamps[0]:.3f}..{depth_stamps[-1]:.3f}); check that both lists come from the same recording"
         )
+    without_depth = len(rgb_list) - len(pairs)
     pairs = pairs[::stride]
     if max_frames is not None:
         pairs = pairs[:max_frames]
@@ -362,6 +366,7 @@ def open_sequence(
         ground_truth=ground_truth,
         gt_rgb_paths=_gt_rgb_paths(folder, [rgb_list[i][1] for i, _ in pairs]),
         depth_timestamps_s=np.array([depth_stamps[j] for _, j in pairs]),
+        colour_frames_without_depth=without_depth,
     )
     for rgb_path, depth_path in zip(sequence.rgb_paths, sequence.depth_paths):
         check_image_file(rgb_path, "rgb.txt")
