@@ -12,6 +12,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numba
@@ -19,7 +20,7 @@ import numpy as np
 import yaml
 
 from tambridge.errors import CameraConfigError
-from tambridge.files import CONFIGS_FOLDER, read_text_file, yaml_error_line
+from tambridge.files import CONFIGS_FOLDER, load_yaml, read_text_file, yaml_error_line
 
 if TYPE_CHECKING:
     import torch
@@ -216,10 +217,10 @@ _KNOWN_KEYS = frozenset((*_CAMERA_KEYS, "depth_scale", "depth_invalid", "distort
 def tum_preset_for_folder(folder: Path) -> RgbdSensor | None:
     """The TUM preset named by a folder such as ``rgbd_dataset_freiburg1_xyz`` or ``tum_fr2_desk``, else None."""
     name = Path(folder).resolve().name.lower()
-    for index in ("1", "2", "3"):
-        if f"freiburg{index}" in name or f"fr{index}" in name:
-            return TUM_PRESETS[f"fr{index}"]
-    return None
+    # A word of its own (fr1 in tum_fr1_desk, not in fr10_garden or afr1x): a name that only contains the letters
+    # must not give another camera TUM's calibration.
+    match = re.search(r"(?<![a-z0-9])(?:freiburg|fr)([123])(?![0-9])", name)
+    return None if match is None else TUM_PRESETS[f"fr{match.group(1)}"]
 
 
 MAX_ROLLING_SHUTTER_S = 0.1
@@ -368,7 +369,7 @@ def load_sensor_file(path: Path) -> RgbdSensor:
     text = read_text_file(path, CameraConfigError)
     if path.suffix.lower() in (".yaml", ".yml"):
         try:
-            values = yaml.safe_load(text) or {}
+            values = load_yaml(text) or {}
         except yaml.YAMLError as error:
             raise CameraConfigError(f"{path}: not valid YAML ({yaml_error_line(error)})") from error
         if not isinstance(values, dict):

@@ -17,7 +17,7 @@ from pathlib import Path
 import yaml
 
 from tambridge.errors import ConfigError
-from tambridge.files import CONFIGS_FOLDER, find_config_file, read_text_file, yaml_error_line
+from tambridge.files import CONFIGS_FOLDER, find_config_file, load_yaml, read_text_file, yaml_error_line
 from tambridge.bridge.config import BridgeConfig
 from tambridge.checkpoint import CheckpointConfig
 from tambridge.evaluation.config import EvaluationConfig
@@ -180,12 +180,15 @@ def load_config(preset: Path | None = None, overrides: typing.Sequence[str] = ()
             raise ConfigError(f"{given}: config file not found; give a YAML file, or a preset's name ({names or 'none'} "
                               f"in {CONFIGS_FOLDER})")
         try:
-            values = yaml.safe_load(read_text_file(preset, ConfigError)) or {}
+            values = load_yaml(read_text_file(preset, ConfigError)) or {}
         except yaml.YAMLError as error:
             raise ConfigError(f"{preset}: not valid YAML ({yaml_error_line(error)})") from error
         if not isinstance(values, dict):
             raise ConfigError(f"{preset}: expected a mapping at the top level")
-        _apply(config, values, "")
+        try:
+            _apply(config, values, "")
+        except ConfigError as error:
+            raise ConfigError(f"{preset}: {error}") from None
     for override in overrides:
         if "=" not in override:
             raise ConfigError(f"--set {override!r}: expected key=value, e.g. --set mapper.iterations=50")

@@ -11,6 +11,8 @@ import tempfile
 from pathlib import Path
 from typing import Iterable, Iterator
 
+import yaml
+
 from tambridge.errors import TambridgeError
 
 
@@ -89,6 +91,24 @@ def find_config_file(path: Path, subfolder: str = "") -> Path:
     else:
         candidate = CONFIGS_FOLDER.parent / path
     return candidate if candidate.is_file() else path
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a mapping that gives a key twice (PyYAML keeps the last one unseen)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"key {key!r} is given twice", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+def load_yaml(text: str):
+    """``yaml.safe_load`` of ``text``, refusing a key given twice in a mapping (a :class:`yaml.YAMLError`)."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)
 
 
 def yaml_error_line(error: Exception) -> str:

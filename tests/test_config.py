@@ -73,6 +73,16 @@ def test_the_presets_say_what_they_change():
     assert Config().mapper.sharp_iterations_per_view == 2 < quality.mapper.sharp_iterations_per_view == 4
 
 
+def test_a_key_given_twice_or_a_bad_value_in_a_preset_names_the_file(tmp_path):
+    (tmp_path / "twice.yaml").write_text("mapper:\n  iterations: 5\n  iterations: 7\n")
+    (tmp_path / "bad.yaml").write_text("mapper:\n  iterations: x\n")
+    for name, message in (("twice.yaml", "not valid YAML (key 'iterations' is given twice at line 3, column 3)"),
+                          ("bad.yaml", "mapper.iterations: expected int, got 'x'")):
+        with pytest.raises(ConfigError) as refused:
+            load_config(tmp_path / name)
+        assert str(refused.value).startswith(f"{tmp_path / name}: {message}")
+
+
 def test_a_preset_that_is_not_utf8_is_refused_naming_it(tmp_path):
     (tmp_path / "latin1.yaml").write_bytes("mapper:\n  iterations: 5 # caf\u00e9\n".encode("latin-1"))
     (tmp_path / "utf16.yaml").write_bytes("mapper:\n  iterations: 5\n".encode("utf-16"))

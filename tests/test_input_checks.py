@@ -86,6 +86,13 @@ def test_a_camera_value_that_would_be_dropped_or_misread_is_refused(tmp_path, ex
     assert str(refused.value).startswith(f"{path}: {message}")
 
 
+def test_a_camera_key_given_twice_is_refused_with_its_line(tmp_path):
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump(CAMERA) + "fx: 12.0\n")
+    with pytest.raises(CameraConfigError, match=r"camera\.yaml: not valid YAML \(key 'fx' is given twice at line 8, column 1\)"):
+        load_sensor_file(path)
+
+
 def test_a_camera_path_that_is_a_folder_is_refused_as_such(tmp_path):
     with pytest.raises(CameraConfigError, match=r": is a folder; pass --camera the camera file \(camera\.yaml\) itself$"):
         load_sensor_file(tmp_path)

@@ -74,6 +74,11 @@ def test_stride_and_max_frames(synthetic_sequence_dir):
 
 def test_tum_preset_from_folder_name_and_undistortion(tmp_path):
     assert find_sensor(tmp_path / "rgbd_dataset_freiburg2_xyz") is TUM_PRESETS["fr2"]
+    assert find_sensor(tmp_path / "tum_fr3_office") is TUM_PRESETS["fr3"]
+    # Only a word of its own names a TUM camera: these name none, and want a camera file.
+    for name in ("fr10_garden", "afr1x", "freiburg12"):
+        with pytest.raises(CameraConfigError, match="the folder name names no TUM camera"):
+            find_sensor(tmp_path / name)
     folder = tmp_path / "rgbd_dataset_freiburg1_test"
     raw = np.full((480, 640), 10000, np.uint16)
     _write_sequence(folder, raw)
