@@ -41,7 +41,10 @@ class _Group(click.Group):
             sys.exit(1)
         except OSError as error:
             fix = OS_ERROR_FIXES.get(error.errno, "check the path")
-            _fail(TambridgeError(f"{error.filename or 'a file'}: {error.strerror or error}; {fix}"))
+            click.echo(f"error: {error.filename or 'a file'}: {error.strerror or error}; {fix}", err=True)
+            # A path the user gave that cannot be used is bad input; a full disk or a failing file system is not,
+            # and another attempt (tambridge batch retries) may succeed.
+            sys.exit(SYSTEM_ERROR_STATUS if error.errno in SYSTEM_ERRNOS else INPUT_ERROR_STATUS)
 
 
 OS_ERROR_FIXES = {
@@ -55,6 +58,11 @@ OS_ERROR_FIXES = {
     errno.EISDIR: "is a folder; give a file",
 }
 """What a user can do about the system's refusals the CLI reports (by errno); others say to check the path."""
+
+SYSTEM_ERRNOS = frozenset((errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.ESTALE, errno.ENOMEM, errno.ETIMEDOUT,
+                           errno.EAGAIN))
+"""Refusals that say nothing wrong of the input: the command exits with :data:`SYSTEM_ERROR_STATUS`."""
+SYSTEM_ERROR_STATUS = 1
 
 
 def _output_folder(ctx, param, value):
@@ -217,18 +225,24 @@ def demo(output_dir, frames, size, preset, overrides) -> None:
 
     width, height = _parse_size(size)
     config = _resolve_config(preset, overrides, None, None, None)
-    # Before rendering: a folder of other files is refused, and a finished run is replaced only if it was a demo's.
-    check_output_folder(output_dir, Start.OVERWRITE, [str(checkpoint_path(output_dir).relative_to(output_dir))])
+    # Before rendering: a finished demo's run is replaced; anything else is treated as a new run treats it (a
+    # finished or killed run of a sequence, or a folder of other files, is refused).
     finished = output_dir / FINISHED_MARKER
-    if finished.is_file() and DEMO_PREFIX not in read_metrics(finished).sequence:
+    earlier_demo = finished.is_file() and Path(read_metrics(finished).sequence).parent.name.startswith(DEMO_PREFIX)
+    if finished.is_file() and not earlier_demo:
         raise TambridgeError(f"-o {output_dir}: holds a finished run that is not a demo's; give another -o (the demo "
                              "replaces only its own earlier run)")
+    if checkpoint_path(output_dir).is_file():
+        raise TambridgeError(f"-o {output_dir}: holds a killed run's checkpoint; give another -o (or continue that run "
+                             "with tambridge reconstruct --resume)")
+    start = Start.OVERWRITE if earlier_demo else Start.NEW
+    check_output_folder(output_dir, start, [str(checkpoint_path(output_dir).relative_to(output_dir))])
     with tempfile.TemporaryDirectory(prefix=DEMO_PREFIX) as temp:
         sequence_dir = Path(temp) / "synthetic"
         click.echo(f"rendering a {frames}-frame {width}x{height} synthetic sequence ...")
         write_synthetic_sequence(sequence_dir, SynthOptions(frame_count=frames, width=width, height=height, seed=config.seed))
         # The demo is the install check a user repeats: it replaces its own earlier run (only the files it wrote).
-        _print_run_summary(run(sequence_dir, output_dir, config, start=Start.OVERWRITE))
+        _print_run_summary(run(sequence_dir, output_dir, config, start=start))
 
 
 DEMO_PREFIX = "tambridge-demo-"
@@ -399,8 +413,8 @@ def export(run_dir, export_format, output_dir, frames, images, text) -> None:
     result = export_run(run_dir, output_dir, export_format, frames, images, text)
     tracks = f" ({result.observations} observations in their tracks)" if result.observations else ""
     if result.observations == 0:
-        # Tracks come from the keyframes' observations: other frames, or fewer than two keyframes, give none.
-        tracks = " (none with a track: fewer than two of these images are keyframes; --frames keyframes gives tracks)"
+        # Tracks come from the keyframes' observations: frames that are not keyframes give none.
+        tracks = " (none with a track: no point is seen in two of these images that are keyframes; --frames keyframes gives tracks)"
     click.echo(f"wrote {result.images} images and {result.points} points{tracks} to {result.output_dir}")
     click.echo(f"points: {result.points_source}")
 

@@ -40,6 +40,7 @@ from tambridge.batch.summary import (SequenceRow, Status, check_batch_folder, is
                                      write_summary)
 from tambridge.checkpoint import checkpoint_path
 from tambridge.errors import INPUT_ERROR_STATUS, TambridgeError
+from tambridge.files import find_config_file
 
 logger = logging.getLogger("tambridge.pipelines.batch")
 
@@ -210,7 +211,7 @@ def run_batch(sequences: Sequence[BatchSequence], out_dir: Path, options: BatchO
     check_config(load_config(options.preset, options.overrides))
     check_batch_folder(out_dir, sequences)
     out_dir = Path(out_dir).resolve()
-    preset = None if options.preset is None else str(Path(options.preset).resolve())
+    preset = None if options.preset is None else str(find_config_file(options.preset).resolve())
     batch = {"output": str(out_dir), "started": _now(), "finished": None, "address": options.address,
              "config": preset, "overrides": list(options.overrides), "cpus_per_run": options.cpus_per_run,
              "retries": options.retries}

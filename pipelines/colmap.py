@@ -14,8 +14,7 @@ import time
 from pathlib import Path
 
 from tambridge.errors import TambridgeError, TrajectoryEvaluationError
-from tambridge.evaluation.colmap import (MIN_COLMAP_IMAGES, ColmapError, ColmapOptions, run_colmap,
-                                         write_monocular_trajectory)
+from tambridge.evaluation.colmap import ColmapOptions, run_colmap, write_monocular_trajectory
 from tambridge.evaluation.plots import plot_trajectory_errors
 from tambridge.evaluation.trajectory import TrajectoryErrors, evaluate_trajectory
 from tambridge.files import atomic_write_text, check_output_file
@@ -56,9 +55,6 @@ def colmap(
     if others:
         raise TambridgeError(f"-o {output_dir}: holds files this command did not write ({', '.join(others[:3])}); give "
                              "a new folder or one of an earlier tambridge colmap")
-    if len(sequence) < MIN_COLMAP_IMAGES:
-        raise ColmapError(f"{sequence_dir}: COLMAP needs at least {MIN_COLMAP_IMAGES} images, --every {every} gives "
-                          f"{len(sequence)}; use a smaller --every")
     started = time.perf_counter()
     result = run_colmap((frame.rgb for frame in sequence), sequence.timestamps_s, sequence.camera, options)
     seconds = time.perf_counter() - started

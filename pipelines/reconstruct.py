@@ -47,7 +47,7 @@ from tambridge.frontend.factory import make_frontend
 from tambridge.io.prefetch import FramePrefetcher
 from tambridge.io.tum import MAX_ASSOCIATION_DIFFERENCE_S, RgbdSequence, find_accelerometer, open_sequence
 from tambridge.mapping.stage import MappingStage
-from tambridge.run_folder import RunFolder, Start, UnfinishedRunError, check_output_folder
+from tambridge.run_folder import RunFolder, Start, check_output_folder
 from tambridge.runlog import RunLog, peak_memory_mb
 from tambridge.stop import RunStopped, StopRequests, signal_name
 from tambridge.trajectory import Trajectory, write_tum_trajectory
@@ -202,17 +202,18 @@ def reconstruct(
 
 @contextlib.contextmanager
 def saying_the_run_is_unfinished(output_dir: Path, checkpoint_file: Path) -> Iterator[None]:
-    """Re-raise an input error met mid-run (a frame that cannot be decoded; no frame tracked) as an
-    :class:`UnfinishedRunError` that says what ``output_dir`` now holds and how to go on; a stop by a signal
-    (:class:`RunStopped`) says so itself."""
+    """Re-raise an input error met mid-run (a frame that cannot be decoded; no frame tracked), of the same class,
+    saying what ``output_dir`` now holds and how to go on; a stop by a signal (:class:`RunStopped`) says so itself."""
     try:
         yield
     except RunStopped:
         raise
     except TambridgeError as error:
-        go_on = ("--resume continues from its checkpoint once that is fixed, --overwrite starts it again"
-                 if checkpoint_file.is_file() else "the same command replaces it once that is fixed")
-        raise UnfinishedRunError(f"{error} ({output_dir} holds the unfinished run: {go_on})") from error
+        go_on = "the same command replaces it once that is fixed"
+        if checkpoint_file.is_file():
+            go_on = ("--overwrite starts it again once that is fixed (--resume continues it only where the sequence "
+                     "and settings are unchanged)")
+        raise type(error)(f"{error} ({output_dir} holds the unfinished run: {go_on})") from error
 
 
 def surface_points(mesh, gaussians, tracking: FrontendResult) -> np.ndarray:

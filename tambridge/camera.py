@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from tambridge.errors import CameraConfigError
-from tambridge.files import CONFIGS_FOLDER, load_yaml, read_text_file, yaml_error_line
+from tambridge.files import config_file_names, find_config_file, load_yaml, read_text_file, yaml_error_line
 
 if TYPE_CHECKING:
     import torch
@@ -246,8 +246,8 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
                                 f"{', '.join(_CAMERA_KEYS)} and depth_scale (raw depth units per metre: TUM 5000, "
                                 "millimetres 1000)")
     _check_numbers(values, source)
-    d_keys = [f"d{i}" for i in range(5) if f"d{i}" in values]
-    if d_keys and "distortion" in values:
+    d_keys = [f"d{i}" for i in range(5) if values.get(f"d{i}") is not None]
+    if d_keys and values.get("distortion") is not None:
         raise CameraConfigError(f"{source}: gives distortion and {', '.join(d_keys)}; give the coefficients one way")
     invalid = values.get("depth_invalid")
     if invalid is not None and not (float(invalid).is_integer() and 0 <= float(invalid) <= 65535):
@@ -329,7 +329,7 @@ def _camera_from_values(values: dict, prefix: str) -> Camera:
 def _colour_camera_from_values(values: dict, depth_camera: Camera, source: Path) -> tuple[Camera | None, np.ndarray | None]:
     """``(colour_camera, colour_from_depth)`` of an unregistered sensor's file, or ``(None, None)``."""
     # Any colour_ key says the colour camera is another one: the optional ones alone would be dropped unseen.
-    given = [key for key in values if str(key).startswith("colour_")]
+    given = [key for key, value in values.items() if str(key).startswith("colour_") and value is not None]
     if not given:
         return None, None
     missing = [key for key in _COLOUR_KEYS if key not in values]
@@ -363,9 +363,8 @@ def load_sensor_file(path: Path) -> RgbdSensor:
     if path.is_dir():
         raise CameraConfigError(f"{path}: is a folder; pass --camera the camera file (camera.yaml) itself")
     if not path.is_file():
-        names = ", ".join(sorted(known.stem for known in (CONFIGS_FOLDER / "cameras").glob("*.yaml"))) or "none"
         raise CameraConfigError(f"{path}: camera file not found; pass --camera with a YAML file of "
-                                f"{', '.join(_CAMERA_KEYS)}, or a camera's name ({names} in {CONFIGS_FOLDER / 'cameras'})")
+                                f"{', '.join(_CAMERA_KEYS)}, or a camera's name ({config_file_names('cameras')})")
     text = read_text_file(path, CameraConfigError)
     if path.suffix.lower() in (".yaml", ".yml"):
         try:
@@ -383,6 +382,8 @@ def load_sensor_file(path: Path) -> RgbdSensor:
         parts = line.split()
         if len(parts) < 2:
             raise CameraConfigError(f"{path} line {number}: expected 'key value', got {line!r}")
+        if parts[0] in values:
+            raise CameraConfigError(f"{path} line {number}: {parts[0]} is given twice; keep one of its lines")
         values[parts[0]] = parts[1] if len(parts) == 2 else parts[1:]
     return sensor_from_mapping(values, path)
 
@@ -391,7 +392,7 @@ def find_sensor(folder: Path, camera_file: Path | None = None) -> RgbdSensor:
     """The sensor of a sequence: an explicit file, else camera.yaml/camera.txt in the folder, else a TUM preset."""
     folder = Path(folder)
     if camera_file is not None:
-        return load_sensor_file(camera_file)
+        return load_sensor_file(find_config_file(camera_file, "cameras"))
     for name in ("camera.yaml", "camera.yml", "camera.txt"):
         if (folder / name).is_file():
             return load_sensor_file(folder / name)

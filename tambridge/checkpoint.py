@@ -118,15 +118,19 @@ def sequence_fingerprint(sequence: RgbdSequence) -> dict:
     timestamps = np.ascontiguousarray(np.asarray(sequence.timestamps_s, np.float64))
     files = [folder / name for name in SEQUENCE_INDEX_FILES if (folder / name).is_file()]
     sampled = sorted({0, len(sequence) // 2, len(sequence) - 1}) if len(sequence) else []
-    # Images listed by absolute paths (rgb.txt may name them anywhere) are named by those.
-    files += [Path(paths[index]).resolve() for paths in (sequence.rgb_paths, sequence.depth_paths) for index in sampled]
+    names = {str(path.relative_to(folder)): path for path in files}
+    for paths in (sequence.rgb_paths, sequence.depth_paths):
+        for index in sampled:
+            path = Path(paths[index])
+            # By its path in the folder; an image that rgb.txt names by an absolute path elsewhere, by that.
+            inside = Path(sequence.folder) in path.parents
+            names[str(path.relative_to(sequence.folder)) if inside else str(path.resolve())] = path
     return {
         "folder": str(folder),
         "frames": int(len(timestamps)),
         "timestamps_sha1": hashlib.sha1(timestamps.tobytes()).hexdigest(),
         "camera": repr(sequence.sensor),
-        "files_sha256": {str(path.relative_to(folder) if folder in path.parents else path):
-                         _sha256(path) if path.is_file() else "missing" for path in files},
+        "files_sha256": {name: _sha256(path) if path.is_file() else "missing" for name, path in names.items()},
     }
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import yaml
 
 from tambridge.errors import ConfigError
-from tambridge.files import CONFIGS_FOLDER, find_config_file, load_yaml, read_text_file, yaml_error_line
+from tambridge.files import config_file_names, find_config_file, load_yaml, read_text_file, yaml_error_line
 from tambridge.bridge.config import BridgeConfig
 from tambridge.checkpoint import CheckpointConfig
 from tambridge.evaluation.config import EvaluationConfig
@@ -176,9 +176,8 @@ def load_config(preset: Path | None = None, overrides: typing.Sequence[str] = ()
     if preset is not None:
         given, preset = preset, find_config_file(preset)
         if not preset.is_file():
-            names = ", ".join(sorted(path.stem for path in CONFIGS_FOLDER.glob("*.yaml")))
-            raise ConfigError(f"{given}: config file not found; give a YAML file, or a preset's name ({names or 'none'} "
-                              f"in {CONFIGS_FOLDER})")
+            raise ConfigError(f"{given}: config file not found; give a YAML file, or a preset's name "
+                              f"({config_file_names()})")
         try:
             values = load_yaml(read_text_file(preset, ConfigError)) or {}
         except yaml.YAMLError as error:

@@ -9,7 +9,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Hashable, Iterable, Iterator
 
 import yaml
 
@@ -84,7 +84,7 @@ def find_config_file(path: Path, subfolder: str = "") -> Path:
     folder: a bare name with or without ``.yaml`` (``fast``, ``7scenes_kinect.yaml``) in ``configs/<subfolder>``,
     or a path from the checkout's root (``configs/fast.yaml``); else ``path`` as given (its reader names it)."""
     path = Path(path)
-    if path.exists() or path.is_absolute():
+    if path.is_file() or path.is_absolute():
         return path
     if len(path.parts) == 1:
         candidate = CONFIGS_FOLDER / subfolder / (path.name if path.suffix else f"{path.name}.yaml")
@@ -99,16 +99,26 @@ class _UniqueKeyLoader(yaml.SafeLoader):
     def construct_mapping(self, node, deep=False):
         seen = set()
         for key_node, _ in node.value:
+            # Merge keys (<<) bring other keys in, which the mapping's own may override, as YAML allows.
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
             key = self.construct_object(key_node, deep=deep)
-            if key in seen:
+            if isinstance(key, Hashable) and key in seen:
                 raise yaml.constructor.ConstructorError(None, None, f"key {key!r} is given twice", key_node.start_mark)
-            seen.add(key)
+            if isinstance(key, Hashable):
+                seen.add(key)
         return super().construct_mapping(node, deep)
 
 
 def load_yaml(text: str):
     """``yaml.safe_load`` of ``text``, refusing a key given twice in a mapping (a :class:`yaml.YAMLError`)."""
     return yaml.load(text, Loader=_UniqueKeyLoader)
+
+
+def config_file_names(subfolder: str = "") -> str:
+    """The names of the checkout's ``configs/<subfolder>/*.yaml`` and where they lie, for error messages."""
+    names = ", ".join(sorted(path.stem for path in (CONFIGS_FOLDER / subfolder).glob("*.yaml"))) or "none"
+    return f"{names} in {CONFIGS_FOLDER / subfolder}"
 
 
 def yaml_error_line(error: Exception) -> str:

@@ -32,11 +32,6 @@ class OutputFolderError(TambridgeError):
     """The output folder cannot be used as asked: it holds results, is locked by another run, or is not a folder."""
 
 
-class UnfinishedRunError(TambridgeError):
-    """An input error met while a run wrote into its folder (a frame that cannot be decoded): the folder holds an
-    unfinished run, which the message says how to replace or continue."""
-
-
 class Start(enum.Enum):
     """How a run treats what its output folder already holds."""
 

@@ -83,6 +83,16 @@ def test_a_key_given_twice_or_a_bad_value_in_a_preset_names_the_file(tmp_path):
         assert str(refused.value).startswith(f"{tmp_path / name}: {message}")
 
 
+def test_yaml_merge_keys_and_complex_keys_load_as_before(tmp_path):
+    from tambridge.files import load_yaml
+
+    # A merge key brings keys in that the mapping may override: not a key given twice.
+    text = "base: &base {iterations: 5, enabled: true}\nmapper:\n  <<: *base\n  iterations: 7\n"
+    assert load_yaml(text)["mapper"] == {"iterations": 7, "enabled": True}
+    with pytest.raises(yaml.YAMLError):
+        load_yaml("? [a, b]\n: 1\n")  # as yaml.safe_load refuses it: an unhashable key, not a traceback
+
+
 def test_a_preset_that_is_not_utf8_is_refused_naming_it(tmp_path):
     (tmp_path / "latin1.yaml").write_bytes("mapper:\n  iterations: 5 # caf\u00e9\n".encode("latin-1"))
     (tmp_path / "utf16.yaml").write_bytes("mapper:\n  iterations: 5\n".encode("utf-16"))

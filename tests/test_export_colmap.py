@@ -382,7 +382,7 @@ def test_cli_export_prints_what_it_wrote(run_dir, tmp_path):
     single = CliRunner().invoke(main, ["export", str(run_dir), "--format", "colmap", "-o", str(tmp_path / "single"),
                                        "--frames", "every:1000"])
     assert single.exit_code == 0, single.output
-    assert "(none with a track: fewer than two of these images are keyframes" in single.output
+    assert "(none with a track: no point is seen in two of these images that are keyframes" in single.output
 
 
 def _refused(arguments, tmp_path) -> str:

@@ -1,5 +1,7 @@
 """Inputs that used to pass silently or with a traceback: each is refused with one line naming the file and the fix."""
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ from tambridge.errors import CameraConfigError, SequenceFormatError, TrajectoryF
 from tambridge.io.tum import DEPTH_CHECK_FRAMES, open_sequence, read_file_list
 from tambridge.trajectory import read_tum_trajectory
 
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 CAMERA = {"width": 8, "height": 6, "fx": 10.0, "fy": 10.0, "cx": 3.5, "cy": 2.5, "depth_scale": 5000.0}
 
 
@@ -91,6 +94,28 @@ def test_a_camera_key_given_twice_is_refused_with_its_line(tmp_path):
     path.write_text(yaml.safe_dump(CAMERA) + "fx: 12.0\n")
     with pytest.raises(CameraConfigError, match=r"camera\.yaml: not valid YAML \(key 'fx' is given twice at line 8, column 1\)"):
         load_sensor_file(path)
+
+
+def test_a_camera_txt_key_given_twice_is_refused_with_its_line(tmp_path):
+    path = tmp_path / "camera.txt"
+    path.write_text("".join(f"{key} {value}\n" for key, value in CAMERA.items()) + "fx 12\n")
+    with pytest.raises(CameraConfigError, match=r"camera\.txt line 8: fx is given twice; keep one of its lines"):
+        load_sensor_file(path)
+
+
+def test_null_camera_keys_are_unset(tmp_path):
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump({**CAMERA, "distortion": None, "d0": 0.1, "colour_distortion": None}))
+    sensor = load_sensor_file(path)
+    assert sensor.camera.distortion == (0.1, 0.0, 0.0, 0.0, 0.0) and sensor.colour_camera is None
+
+
+def test_a_camera_named_by_its_checkout_name_is_found_from_any_folder(tmp_path, monkeypatch):
+    from tambridge.camera import find_sensor
+
+    monkeypatch.chdir(tmp_path)
+    named, kinect = find_sensor(tmp_path, Path("7scenes_kinect")), load_sensor_file(CONFIGS / "cameras" / "7scenes_kinect.yaml")
+    assert repr(named) == repr(kinect) and named.colour_camera is not None
 
 
 def test_a_camera_path_that_is_a_folder_is_refused_as_such(tmp_path):

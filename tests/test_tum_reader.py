@@ -60,7 +60,7 @@ def test_tum_depth_is_scaled_by_5000(tmp_path):
 def test_millimetre_depth_with_invalid_value_from_camera_txt(tmp_path):
     raw = np.full((6, 8), 1500, np.uint16)
     raw[2, 3] = 65535
-    _write_sequence(tmp_path / "seq", raw, CAMERA_8x6 + "depth_scale 1000\ndepth_invalid 65535\n")
+    _write_sequence(tmp_path / "seq", raw, CAMERA_8x6.replace("depth_scale 5000", "depth_scale 1000") + "depth_invalid 65535\n")
     frame = open_sequence(tmp_path / "seq")[0]
     assert frame.depth_m[0, 0] == pytest.approx(1.5)
     assert frame.depth_m[2, 3] == 0.0
@@ -111,7 +111,7 @@ def test_inscribed_rectangle_of_a_disc_holds_only_valid_pixels():
 
 def test_seven_scenes_style_folder_loads_without_flags(tmp_path):
     raw = np.full((6, 8), 2000, np.uint16)
-    _write_sequence(tmp_path / "kitchen", raw, CAMERA_8x6 + "depth_scale 1000.0\ndepth_invalid 65535\n",
+    _write_sequence(tmp_path / "kitchen", raw, CAMERA_8x6.replace("depth_scale 5000", "depth_scale 1000.0") + "depth_invalid 65535\n",
                     rgb_stamps=(0.0, 0.033333), depth_stamps=(0.0, 0.033333))
     sequence = open_sequence(tmp_path / "kitchen")
     assert len(sequence) == 2 and sequence.sensor.depth_scale == 1000.0
@@ -159,7 +159,7 @@ def test_eight_bit_depth(tmp_path):
 
 def test_implausible_depth_scale(tmp_path):
     # A scale of 1 puts a 2 m wall (2000 mm) at 2 km.
-    _write_sequence(tmp_path / "seq", np.full((6, 8), 2000, np.uint16), CAMERA_8x6 + "depth_scale 1\n")
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 2000, np.uint16), CAMERA_8x6.replace("depth_scale 5000", "depth_scale 1"))
     with pytest.raises(SequenceFormatError, match=r"1\.005\.png: median depth is 2e\+03 m .*set depth_scale"):
         open_sequence(tmp_path / "seq")
 
