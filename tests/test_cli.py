@@ -216,7 +216,7 @@ def test_a_camera_file_of_another_size_is_refused_before_the_output_folder_is_ma
                                        "--camera", str(tmp_path / "camera.yaml")])
     first_image = open_sequence(synthetic_sequence_dir).rgb_paths[0]
     assert result.output == (f"error: {first_image}: image is 160x120 but the camera is 320x240; fix width/height in "
-                             "camera.yaml (--camera)\n")
+                             "camera.yaml (--camera), or this image if the sequence's others are 320x240\n")
     assert result.exit_code == 2 and not (tmp_path / "out").exists()
 
 

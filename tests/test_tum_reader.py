@@ -182,7 +182,8 @@ def test_image_size_mismatch_mid_sequence(tmp_path):
     _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
     cv2.imwrite(str(tmp_path / "seq" / "rgb" / "2.0.png"), np.zeros((5, 8, 3), np.uint8))
     sequence = open_sequence(tmp_path / "seq")
-    with pytest.raises(SequenceFormatError, match=r"2\.0\.png: image is 8x5 but the camera is 8x6"):
+    with pytest.raises(SequenceFormatError, match=r"2\.0\.png: image is 8x5 but the camera is 8x6; fix width/height in "
+                                                  r"camera\.yaml \(--camera\), or this image if the sequence's others are 8x6$"):
         sequence[1]
 
 

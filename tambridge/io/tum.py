@@ -249,9 +249,12 @@ class RgbdSequence:
         camera = self.sensor.colour_camera or self.sensor.camera
         if image.shape[:2] != (camera.height, camera.width):
             keys = "colour_width/colour_height" if self.sensor.colour_camera else "width/height"
+            # The first frame is read before a run starts (check_first_frame): a later one that fails here is
+            # most likely the odd one out.
             raise SequenceFormatError(
                 f"{path}: image is {image.shape[1]}x{image.shape[0]} but the camera is {camera.width}x{camera.height}; "
-                f"fix {keys} in camera.yaml (--camera)"
+                f"fix {keys} in camera.yaml (--camera), or this image if the sequence's others are "
+                f"{camera.width}x{camera.height}"
             )
         return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
