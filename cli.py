@@ -294,14 +294,12 @@ def _parse_size(size: str) -> tuple[int, int]:
 def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_subframes, rotation_bursts, burst_speed,
           burst_duration, supersampling, colour_baseline, colour_focal_scale, depth_delay, rolling_shutter, seed) -> None:
     """Write a synthetic TUM-layout sequence (textured room, closed loop) with exact ground truth."""
+    from tambridge.files import check_new_or_empty_folder
     from tambridge.io.synthetic import RotationBursts, SynthOptions, write_synthetic_sequence
 
     width, height = _parse_size(size)
     # Frames of an earlier or longer sequence, or the user's files, would mix with the new ones.
-    if output_dir.exists() and not output_dir.is_dir():
-        raise TambridgeError(f"{output_dir}: is a file; give synth a new or empty folder")
-    if output_dir.is_dir() and any(output_dir.iterdir()):
-        raise TambridgeError(f"{output_dir}: is not empty; give synth a new or empty folder (remove it to write it again)")
+    check_new_or_empty_folder(output_dir)
     if supersampling % 2 == 0:
         raise click.BadParameter(f"{supersampling}: must be odd (the centre ray gives the depth)", param_hint="--supersampling")
     options = SynthOptions(frames, width, height, depth_noise_m=depth_noise, colour_noise=colour_noise,

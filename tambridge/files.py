@@ -50,6 +50,26 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         temp_path.write_bytes(data)
 
 
+def check_new_or_empty_folder(path: Path, option: str = "", holds: str | None = None, marks: Iterable[str] = (),
+                              error: type[TambridgeError] = TambridgeError) -> None:
+    """Raise ``error`` (one line naming ``option`` and ``path``) unless ``path`` is a folder yet to be made, an empty
+    one, or one holding any of the files ``marks`` names: what an earlier output of the same command (``holds``, in
+    words) leaves there. A folder of other files is the user's, not a command's to write into."""
+    path = Path(path)
+    where = f"{option} {path}" if option else f"{path}"
+    if path.exists() and not path.is_dir():
+        raise error(f"{where}: is a file; give a folder")
+    if not path.is_dir():
+        return
+    entries = sorted(entry.name for entry in path.iterdir())
+    if entries and not any((path / mark).is_file() for mark in marks):
+        listed = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        if holds is None:
+            raise error(f"{where}: is not empty ({listed}); give a new or empty folder")
+        raise error(f"{where}: is not empty and holds no {holds} ({listed}); give a new or empty folder, or an "
+                    f"earlier {holds}'s")
+
+
 def check_output_file(path: Path, option: str, inputs: Iterable[Path] = (),
                       outputs: Iterable[tuple[str, Path]] = ()) -> None:
     """Raise :class:`TambridgeError` (one line naming ``option`` and ``path``) unless ``path`` can take a new file

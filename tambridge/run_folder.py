@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Iterable
 
 from tambridge.errors import TambridgeError
-from tambridge.files import atomic_write_text
+from tambridge.files import atomic_write_text, check_new_or_empty_folder
 
 logger = logging.getLogger("tambridge.run_folder")
 
@@ -49,18 +49,13 @@ def check_output_folder(path: Path, start: Start, resumable: Iterable[str]) -> N
     ``resumable``: paths (relative to ``path``) whose presence means a killed run can be resumed (its checkpoint).
     """
     path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise OutputFolderError(f"{path}: is a file, not a folder; give -o a folder (new or from an earlier run)")
-    if not path.is_dir():
-        return
     # A folder of an earlier run may hold the user's own files beside it (they are left alone); any other
     # non-empty folder is not ours to write into, resume or overwrite (the current folder, after an unset shell
-    # variable).
-    entries = sorted(entry.name for entry in path.iterdir() if entry.name != LOCK_NAME)
-    run_files = [MANIFEST_NAME, FINISHED_MARKER, *resumable]
-    if entries and not any((path / name).is_file() for name in run_files):
-        raise OutputFolderError(f"{path}: is not empty and holds no tambridge run ({', '.join(entries[:3])}"
-                                f"{', ...' if len(entries) > 3 else ''}); give an empty or new folder as -o")
+    # variable). A lock alone is a run that is starting.
+    check_new_or_empty_folder(path, "", "tambridge run", [MANIFEST_NAME, FINISHED_MARKER, *resumable, LOCK_NAME],
+                              OutputFolderError)
+    if not path.is_dir():
+        return
     read_manifest(path)
     if start is Start.OVERWRITE:
         return

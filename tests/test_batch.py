@@ -108,7 +108,8 @@ def test_the_batch_writes_only_into_a_new_empty_or_batch_folder(tmp_path):
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "index.html").write_text("mine")
     (tmp_path / "file").write_text("x")
-    for out_dir, message in ((tmp_path / "mine", "is not empty and holds no batch (summary.json)"),
+    for out_dir, message in ((tmp_path / "mine", "is not empty and holds no batch (index.html); give a new or empty "
+                                                 "folder, or an earlier batch's"),
                              (tmp_path / "file", "is a file; give a folder"),
                              (data, "would write sequence a's run into the sequence folder itself")):
         with pytest.raises(TambridgeError, match=re.escape(f"-o {out_dir}: {message}")):

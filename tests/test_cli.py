@@ -199,8 +199,8 @@ def test_synth_writes_only_into_a_new_or_empty_folder(tmp_path):
     (tmp_path / "notes").mkdir()
     (tmp_path / "notes" / "mine.txt").write_text("mine")
     (tmp_path / "a_file").write_text("x")
-    for target, message in ((tmp_path / "notes", "is not empty; give synth a new or empty folder"),
-                            (tmp_path / "a_file", "is a file; give synth a new or empty folder")):
+    for target, message in ((tmp_path / "notes", "is not empty (mine.txt); give a new or empty folder"),
+                            (tmp_path / "a_file", "is a file; give a folder")):
         result = CliRunner().invoke(main, ["synth", str(target), "--frames", "2", "--size", "32x24"])
         assert result.exit_code == 2 and result.output.startswith(f"error: {target}: {message}"), result.output
     assert sorted(path.name for path in (tmp_path / "notes").iterdir()) == ["mine.txt"]

@@ -114,7 +114,7 @@ def test_export_mesh_output_is_listed_in_the_manifest(synthetic_sequence_dir, tm
 
 @pytest.mark.parametrize("output, message", [
     ("", "Invalid value for '-o' / '--output': is empty (an unset shell variable?)"),
-    ("FILE", "is a file, not a folder"),
+    ("FILE", "is a file; give a folder"),
     ("FOREIGN", "is not empty and holds no tambridge run (notes.txt)"),
 ])
 def test_output_folders_that_are_not_a_runs_are_refused(synthetic_sequence_dir, tmp_path, output, message):

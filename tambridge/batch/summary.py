@@ -18,7 +18,7 @@ from typing import Sequence
 from tambridge.batch.sequences import BatchSequence
 from tambridge.errors import TambridgeError
 from tambridge.evaluation.metrics import read_metrics
-from tambridge.files import atomic_write_text
+from tambridge.files import atomic_write_text, check_new_or_empty_folder
 
 SUMMARY_VERSION = 1
 """Bumped whenever a column of the summary is added, renamed or removed, or changes meaning."""
@@ -106,15 +106,11 @@ def check_batch_folder(out_dir: Path, sequences: Sequence[BatchSequence]) -> Non
     """Raise :class:`TambridgeError` unless a batch may write into ``out_dir``: new, empty, or an earlier batch's
     (with its summary.json), and no sequence's folder its own output folder ``out_dir/<name>``."""
     out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise TambridgeError(f"-o {out_dir}: is a file; give a folder")
     for sequence in sequences:
         if (out_dir / sequence.name).resolve() == Path(sequence.folder).resolve():
             raise TambridgeError(f"-o {out_dir}: would write sequence {sequence.name}'s run into the sequence folder "
                                  "itself; give another -o")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / SUMMARY_JSON).is_file():
-        raise TambridgeError(f"-o {out_dir}: is not empty and holds no batch ({SUMMARY_JSON}); give a new or empty "
-                             "folder, or an earlier batch's to go on with it")
+    check_new_or_empty_folder(out_dir, "-o", "batch", [SUMMARY_JSON])
 
 
 def read_rows(out_dir: Path) -> dict[str, SequenceRow]:
