@@ -94,8 +94,8 @@ def remove_checkpoint(output_dir: Path) -> None:
         path.parent.rmdir()
 
 
-def _start_over(path: Path) -> str:
-    return f"run without --resume to start over (or delete {path.parent}/)"
+START_OVER = "pass --overwrite instead of --resume to start over (or give another -o)"
+"""How to go on from a checkpoint that cannot be resumed: a plain start refuses a folder that holds one."""
 
 
 # ---- the sequence ---------------------------------------------------------------------------------------------
@@ -125,12 +125,18 @@ def sequence_fingerprint(sequence: RgbdSequence) -> dict:
             # By its path in the folder; an image that rgb.txt names by an absolute path elsewhere, by that.
             inside = Path(sequence.folder) in path.parents
             names[str(path.relative_to(sequence.folder)) if inside else str(path.resolve())] = path
+    # Every image's size and modification time: an edited frame between those hashed changes them (a stat each).
+    stats = hashlib.sha1()
+    for path in (*sequence.rgb_paths, *sequence.depth_paths):
+        status = Path(path).stat()
+        stats.update(f"{Path(path).name} {status.st_size} {status.st_mtime_ns}\n".encode())
     return {
         "folder": str(folder),
         "frames": int(len(timestamps)),
         "timestamps_sha1": hashlib.sha1(timestamps.tobytes()).hexdigest(),
         "camera": repr(sequence.sensor),
         "files_sha256": {name: _sha256(path) if path.is_file() else "missing" for name, path in names.items()},
+        "images_stat_sha1": stats.hexdigest(),
     }
 
 
@@ -151,6 +157,8 @@ def _sequence_differences(saved: dict, current: dict) -> list[str]:
                      if saved_files.get(name) != current["files_sha256"].get(name))
     if changed:
         differences.append(f"other {', '.join(changed[:4])}{', ...' if len(changed) > 4 else ''}")
+    if not differences and saved.get("images_stat_sha1") != current["images_stat_sha1"]:
+        differences.append("images changed since (their sizes or modification times)")
     return differences
 
 
@@ -264,7 +272,7 @@ def _read_checkpoint(path: Path) -> Checkpoint:
         version = document.get("version")
         if version != CHECKPOINT_VERSION:
             raise CheckpointError(f"{path}: checkpoint version {version}, this tambridge reads version "
-                                  f"{CHECKPOINT_VERSION}; {_start_over(path)}")
+                                  f"{CHECKPOINT_VERSION}; {START_OVER}")
         fields = decode_state(document["checkpoint"], archive, state_types())
     if type(fields) is not dict or set(fields) != set(_FIELD_TYPES) \
             or any(type(fields[name]) not in kinds for name, kinds in _FIELD_TYPES.items()):
@@ -289,7 +297,7 @@ def load_checkpoint(path: Path) -> Checkpoint:
         pickled = path.with_name(PICKLE_CHECKPOINT_NAME)
         if pickled.is_file():
             raise CheckpointError(f"{pickled}: a checkpoint of an older tambridge, a pickle, which this one never "
-                                  f"loads (loading a pickle can run any code); {_start_over(path)}")
+                                  f"loads (loading a pickle can run any code); {START_OVER}")
         raise CheckpointError(f"{path}: no checkpoint to resume from (the run finished, was stopped before its first "
                               f"checkpoint, or ran with checkpoint.every_keyframes=0); run without --resume")
     try:
@@ -299,7 +307,7 @@ def load_checkpoint(path: Path) -> Checkpoint:
     except Exception as error:  # noqa: BLE001 - whatever is wrong with the file, the user can only start over
         reason = " ".join(f"{type(error).__name__}: {error}".split())
         raise CheckpointError(f"{path}: not a readable tambridge checkpoint ({reason[:300]}); "
-                              f"{_start_over(path)}") from error
+                              f"{START_OVER}") from error
 
 
 def check_resumable(path: Path, checkpoint: Checkpoint, config: dict, sequence: dict) -> None:
@@ -316,14 +324,14 @@ def check_resumable(path: Path, checkpoint: Checkpoint, config: dict, sequence: 
                           for key in differing[:5])
         raise CheckpointError(f"{path}: the checkpoint was written with another config ({shown}"
                               f"{', ...' if len(differing) > 5 else ''}); resume with the same options "
-                              f"(see config.yaml beside it) or {_start_over(path)}")
+                              f"(see config.yaml beside it) or {START_OVER}")
     differences = _sequence_differences(checkpoint.sequence, sequence)
     if differences:
         raise CheckpointError(f"{path}: the checkpoint is of another sequence ({'; '.join(differences)}); resume with "
-                              f"the same sequence or {_start_over(path)}")
+                              f"the same sequence or {START_OVER}")
     if checkpoint.next_frame > sequence["frames"]:
         raise CheckpointError(f"{path}: the checkpoint is at frame {checkpoint.next_frame} of a "
-                              f"{sequence['frames']}-frame sequence; {_start_over(path)}")
+                              f"{sequence['frames']}-frame sequence; {START_OVER}")
 
 
 class KeyframeCheckpoints:

@@ -42,7 +42,7 @@ def restore_attributes(owner: object, state: dict[str, Any]) -> None:
     if missing:
         # A checkpoint of the same version always names the same attributes; anything else is a version mismatch.
         raise CheckpointError(f"checkpoint holds attributes {missing} that {type(owner).__name__} does not have; "
-                              f"it was written by another tambridge version: run again without --resume")
+                              f"it was written by another tambridge version: run again with --overwrite instead of --resume")
     vars(owner).update(state)
 
 

@@ -27,6 +27,7 @@ from pipelines.reconstruct import reconstruct
 from tambridge.bridge.view_selection import Selection
 from tambridge.checkpoint import (
     CHECKPOINT_VERSION,
+    START_OVER,
     Checkpoint,
     CheckpointError,
     check_resumable,
@@ -147,7 +148,7 @@ def test_resume_refuses_another_folder_or_content_with_the_same_timestamps(synth
         np.testing.assert_array_equal(other.timestamps_s, sequence.timestamps_s)
         with pytest.raises(CheckpointError, match=match) as refused:
             check_resumable(path, saved, {}, sequence_fingerprint(other))
-        assert "\n" not in str(refused.value) and "without --resume" in str(refused.value)
+        assert "\n" not in str(refused.value) and str(refused.value).endswith(START_OVER)
 
     copy = tmp_path / "copy"
     shutil.copytree(synthetic_sequence_dir, copy)
@@ -159,11 +160,15 @@ def test_resume_refuses_another_folder_or_content_with_the_same_timestamps(synth
     shutil.copyfile(min((copy / "rgb").iterdir()), last_rgb)
     refuse(copy, rf"another sequence \(other rgb/{last_rgb.name}\)")
     # ... or, with the images as they were, its ground truth (an index file) changed.
-    shutil.copyfile(synthetic_sequence_dir / "rgb" / last_rgb.name, last_rgb)
+    shutil.copy2(synthetic_sequence_dir / "rgb" / last_rgb.name, last_rgb)  # its content and time as they were
     check_resumable(path, saved, {}, sequence_fingerprint(open_sequence(copy)))
     with open(copy / "groundtruth.txt", "a") as handle:
         handle.write("# edited\n")
     refuse(copy, r"another sequence \(other groundtruth\.txt\)")
+    # A frame other than those hashed, edited: its size or modification time gives it away.
+    saved = _checkpoint({}, sequence_fingerprint(open_sequence(copy)))
+    shutil.copyfile(min((copy / "rgb").iterdir()), sorted((copy / "rgb").iterdir())[3])
+    refuse(copy, r"another sequence \(images changed since \(their sizes or modification times\)\)")
 
 
 def test_images_listed_by_absolute_paths_are_fingerprinted_by_them(synthetic_sequence_dir, tmp_path):
@@ -194,8 +199,8 @@ def test_missing_truncated_or_foreign_checkpoints_give_clear_errors(tmp_path):
     path = checkpoint_path(tmp_path / "out")
     with pytest.raises(CheckpointError, match=r"checkpoint\.npz: no checkpoint to resume from .*every_keyframes=0\); run without --resume"):
         load_checkpoint(path)
-    unreadable = rf"checkpoint\.npz: not a readable tambridge checkpoint \(.*\); run without --resume to start over " \
-                 rf"\(or delete {path.parent}/\)$"
+    unreadable = rf"checkpoint\.npz: not a readable tambridge checkpoint \(.*\); pass --overwrite instead of --resume to start over " \
+                 r"\(or give another -o\)$"
     path.parent.mkdir(parents=True)
     path.write_bytes(b"\x80\x05not a checkpoint")
     with pytest.raises(CheckpointError, match=unreadable):
@@ -219,7 +224,7 @@ def test_missing_truncated_or_foreign_checkpoints_give_clear_errors(tmp_path):
     old.version = 0
     save_checkpoint(path, old)
     with pytest.raises(CheckpointError, match=rf"checkpoint\.npz: checkpoint version 0, this tambridge reads version "
-                                              rf"{CHECKPOINT_VERSION}; run without --resume"):
+                                              rf"{CHECKPOINT_VERSION}; pass --overwrite instead of --resume"):
         load_checkpoint(path)
     save_checkpoint(path, written)
     assert load_checkpoint(path) == written
@@ -267,13 +272,13 @@ def test_loading_never_runs_code_from_the_file(tmp_path):
             load_checkpoint(path)
         message = str(refused.value)
         assert message.startswith(f"{path}: not a readable tambridge checkpoint") and "\n" not in message, attack
-        assert message.endswith(f"run without --resume to start over (or delete {path.parent}/)"), attack
+        assert message.endswith(START_OVER), attack
         assert not marker.exists(), attack
     # The name older versions wrote their pickles under is never loaded, only named.
     path.unlink()
     (path.parent / "checkpoint.pkl").write_bytes(payload)
     with pytest.raises(CheckpointError, match=r"checkpoint\.pkl: a checkpoint of an older tambridge, a pickle, which "
-                                              r"this one never loads .*run without --resume to start over"):
+                                              r"this one never loads .*pass --overwrite instead of --resume to start over"):
         load_checkpoint(path)
     assert not marker.exists()
 

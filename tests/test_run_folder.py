@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -215,10 +216,14 @@ def test_ground_truth_on_another_clock_leaves_the_results_and_says_why(synthetic
 
 def test_report_from_another_folder_finds_the_sequence(finished_run, synthetic_sequence_dir, tmp_path, monkeypatch):
     assert read_metrics(finished_run / "metrics.json").sequence == str(synthetic_sequence_dir.resolve())
+    headings = re.findall(r"<h2>(.*?)</h2>", (finished_run / "report" / "index.html").read_text())
     monkeypatch.chdir(tmp_path)
     result = _run(["report", str(finished_run)])
     assert result.exit_code == 0, result.output
-    assert "ATE" in (finished_run / "report" / "index.html").read_text()
+    rebuilt = (finished_run / "report" / "index.html").read_text()
+    # Every section of the run's own report, the renders' figures included (kept from the run).
+    assert "ATE" in rebuilt and re.findall(r"<h2>(.*?)</h2>", rebuilt) == headings
+    assert {"Trajectory", "Renders", "As exported", "Gaussians"} <= set(headings)
 
 
 @pytest.mark.parametrize("frames", [1, 2])

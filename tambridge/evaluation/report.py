@@ -69,6 +69,7 @@ def write_report(
     title: str = "tambridge run",
     web_viewer: bool = False,
     exported_pairs: Sequence[RenderPair] = (),
+    keep_figures: bool = False,
 ) -> Path:
     """Write ``report_dir/index.html`` and its PNGs; returns the HTML path.
 
@@ -77,7 +78,9 @@ def write_report(
     one). ``render_pairs``: at most :data:`MAX_RENDER_ROWS` are shown, evenly spread. ``gaussian_counts``:
     frame indices (N,) and the map's Gaussian count after each (N,). ``web_viewer``: embed ``report_dir/viewer/``
     (written by :func:`~tambridge.export.web_viewer.write_run_viewer`). ``exported_pairs``: novel views' frames
-    beside splats.ply rendered as exported (:func:`exported_section`).
+    beside splats.ply rendered as exported (:func:`exported_section`). ``keep_figures``: where renders, exported
+    renders or the Gaussian count are not given, show the figures an earlier write left in ``report_dir`` (a report
+    rebuilt after the run, whose renders lived only during it).
     """
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
@@ -99,12 +102,13 @@ def write_report(
         )
     if render_pairs:
         _plot_render_grid(render_pairs, report_dir / "renders.png")
+    if render_pairs or (keep_figures and (report_dir / "renders.png").is_file()):
         sections.append(
             "<h2>Renders</h2><p>Input frames (left) beside the Gaussian map rendered at their poses (right).</p>"
             '<img src="renders.png" alt="renders beside input frames">'
         )
     if metrics.map is not None or exported_pairs:
-        sections.append(exported_section(metrics, exported_pairs, report_dir / "exported.png"))
+        sections.append(exported_section(metrics, exported_pairs, report_dir / "exported.png", keep_figures))
     if web_viewer:
         sections.append(_web_viewer_section())
     if metrics.seconds_per_stage:
@@ -112,6 +116,8 @@ def write_report(
         sections.append('<h2>Time per stage</h2><img src="stages.png" alt="seconds per stage">')
     if gaussian_counts is not None and len(gaussian_counts[0]):
         _plot_gaussian_counts(*gaussian_counts, report_dir / "gaussians.png")
+    if (gaussian_counts is not None and len(gaussian_counts[0])) or \
+            (keep_figures and (report_dir / "gaussians.png").is_file()):
         sections.append('<h2>Gaussians</h2><img src="gaussians.png" alt="Gaussian count over time">')
     sections.append("<h2>Metrics</h2>" + _metrics_table(metrics_json(metrics)))
     generated = datetime.datetime.now().isoformat(timespec="seconds")
@@ -134,7 +140,8 @@ def _worst_segments(trajectory_errors: dict[str, TrajectoryErrors]) -> str:
 
 
 def report_from_run(run_dir: Path) -> Path:
-    """Rebuild ``run_dir/report`` from a finished run's files (no renders: they live only during the run).
+    """Rebuild ``run_dir/report`` from a finished run's files (the renders' figures as the run left them: the renders
+    themselves lived only during the run).
 
     Reads ``metrics.json`` and ``trajectory.txt``; the ground truth is the sequence's ``groundtruth.txt``; a
     COLMAP trajectory is added when ``run_dir/colmap/trajectory.txt`` exists (``tambridge colmap SEQ -o
@@ -157,8 +164,11 @@ def report_from_run(run_dir: Path) -> Path:
             except TrajectoryEvaluationError as error:
                 # As the run itself did (metrics.json trajectory_unavailable): the report goes without that ATE.
                 logger.warning("%s: no ATE against %s: %s", path, ground_truth_path, error)
+    if metrics.trajectory is not None and not ground_truth_path.is_file():
+        logger.warning("%s: not found (the sequence moved?): the rebuilt report has no trajectory section; "
+                       "metrics.json keeps the run's ATE", ground_truth_path)
     return write_report(run_dir / "report", metrics, errors, title=f"tambridge: {metrics.sequence}",
-                        web_viewer=(run_dir / RUN_VIEWER_FOLDER / "index.html").is_file())
+                        web_viewer=(run_dir / RUN_VIEWER_FOLDER / "index.html").is_file(), keep_figures=True)
 
 
 def format_metric(value: object) -> str:
@@ -191,10 +201,10 @@ def _web_viewer_section() -> str:
         f'<iframe id="web-viewer" src="{viewer}" title="splats.ply viewer" loading="lazy" '
         'style="display: block; box-sizing: border-box; width: 100%; aspect-ratio: 4 / 3; border: 1px solid #ddd;"></iframe>'
     )
-def exported_section(metrics: RunMetrics, pairs: Sequence[RenderPair], path: Path) -> str:
+def exported_section(metrics: RunMetrics, pairs: Sequence[RenderPair], path: Path, keep_figure: bool = False) -> str:
     """The "As exported" section: novel-view scores through the views' exposures beside those of splats.ply as a
-    viewer shows it, and (when ``pairs`` are given, written to ``path``) input frame, render as exported and their
-    difference for a few novel views."""
+    viewer shows it, and (when ``pairs`` are given, written to ``path``; with ``keep_figure``, the figure already at
+    ``path``) input frame, render as exported and their difference for a few novel views."""
     rows = ""
     if metrics.map is not None:
         rendering = metrics.map.rendering
@@ -206,6 +216,7 @@ def exported_section(metrics: RunMetrics, pairs: Sequence[RenderPair], path: Pat
     figure = ""
     if pairs:
         _plot_exported_pairs(pairs, path)
+    if pairs or (keep_figure and path.is_file()):
         figure = ('<p>Input frame, splats.ply rendered as exported at its pose, and their difference in brightness '
                   '(red: the render is brighter).</p>'
                   f'<img src="{path.name}" alt="input frames, renders as exported and their difference">')
