@@ -68,21 +68,28 @@ def compare(
     return comparison
 
 
+def _names(name: str, path: Path) -> bool:
+    """Whether a ``--sim3`` name means the file ``path``: its stem, or a path to the same file."""
+    return name == path.stem or Path(name).resolve() == path.resolve()
+
+
 def compare_files(
     ground_truth: Path, estimate_paths: Sequence[Path], sim3_names: Sequence[str] = (), plot_path: Path | None = None
 ) -> Comparison:
     """Compare TUM files against a ground-truth file; Sim(3) for files marked monocular or named in ``sim3_names``.
 
-    A name in ``sim3_names`` matches a file's path as given or its stem. Rows are named by the files' paths.
+    A name in ``sim3_names`` matches a file by its path (however written: ``./a/t.txt`` is ``a/t.txt``) or its stem.
+    Rows are named by the files' paths.
     """
     estimates = {}
     for path in estimate_paths:
         path = Path(path)
-        monocular = str(path) in sim3_names or path.stem in sim3_names or is_monocular_trajectory_file(path)
+        monocular = any(_names(name, path) for name in sim3_names) or is_monocular_trajectory_file(path)
         estimates[str(path)] = (read_tum_trajectory(path), "sim3" if monocular else "se3")
     if len(set(estimates)) != len(estimate_paths):
         raise TrajectoryFormatError("the same trajectory file is named twice")
-    unknown = [name for name in sim3_names if not any(name in (key, Path(key).stem) for key in estimates)]
+    unknown = [name for name in sim3_names if not any(_names(name, Path(key)) for key in estimates)]
     if unknown:
-        raise TrajectoryFormatError(f"--sim3 {unknown[0]!r} names none of the trajectories given")
+        raise TrajectoryFormatError(f"--sim3 {unknown[0]!r} names none of the trajectories given "
+                                    f"({', '.join(estimates)}); give one's path or its file name without .txt")
     return compare(read_tum_trajectory(ground_truth), estimates, plot_path, title=f"against {ground_truth}")

@@ -134,8 +134,16 @@ def test_compare_rejects_a_sim3_name_that_matches_nothing(tmp_path):
 
     reference = Trajectory(np.arange(10) / 30.0, loop_path(10))
     write_tum_trajectory(tmp_path / "gt.txt", reference)
-    with pytest.raises(TrajectoryFormatError, match="--sim3 'nope'"):
+    with pytest.raises(TrajectoryFormatError) as refused:
         compare_files(tmp_path / "gt.txt", [tmp_path / "gt.txt"], sim3_names=("nope",))
+    assert str(refused.value) == (f"--sim3 'nope' names none of the trajectories given ({tmp_path / 'gt.txt'}); give "
+                                  "one's path or its file name without .txt")
+    # The same file however its path is written, or its stem, is named.
+    (tmp_path / "a").mkdir()
+    write_tum_trajectory(tmp_path / "a" / "t.txt", reference)
+    for name in (str(tmp_path / "a" / "." / "t.txt"), "t"):
+        comparison = compare_files(tmp_path / "gt.txt", [tmp_path / "a" / "t.txt"], sim3_names=(name,))
+        assert [errors.alignment for errors in comparison.errors.values()] == ["sim3"]
 
 
 def test_compare_command_prints_one_row_per_file(tmp_path):
