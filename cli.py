@@ -17,10 +17,11 @@ from tambridge.export.config import MeshSource
 from tambridge.settings import Device
 
 
-def _fail(error: Exception) -> None:
+def _fail(error: Exception | str, status: int | None = None) -> None:
+    """``error`` as one line on stderr, then exit with ``status``: by default the error's own (a run stopped by a
+    signal exits as the shell reports one, 143 for SIGTERM, 130 for SIGINT), else that of bad input."""
     click.echo(f"error: {error}", err=True)
-    # A run stopped by a signal exits as the shell reports one (143 for SIGTERM, 130 for SIGINT).
-    sys.exit(getattr(error, "exit_status", INPUT_ERROR_STATUS))
+    sys.exit(status if status is not None else getattr(error, "exit_status", INPUT_ERROR_STATUS))
 
 
 class _Group(click.Group):
@@ -41,10 +42,10 @@ class _Group(click.Group):
             sys.exit(1)
         except OSError as error:
             fix = OS_ERROR_FIXES.get(error.errno, "check the path")
-            click.echo(f"error: {error.filename or 'a file'}: {error.strerror or error}; {fix}", err=True)
             # A path the user gave that cannot be used is bad input; a full disk or a failing file system is not,
             # and another attempt (tambridge batch retries) may succeed.
-            sys.exit(SYSTEM_ERROR_STATUS if error.errno in SYSTEM_ERRNOS else INPUT_ERROR_STATUS)
+            _fail(f"{error.filename or 'a file'}: {error.strerror or error}; {fix}",
+                  SYSTEM_ERROR_STATUS if error.errno in SYSTEM_ERRNOS else INPUT_ERROR_STATUS)
 
 
 OS_ERROR_FIXES = {

@@ -114,10 +114,10 @@ def write_report(
     if metrics.seconds_per_stage:
         _plot_stage_seconds(metrics.seconds_per_stage, metrics.frontend_seconds_per_stage, report_dir / "stages.png")
         sections.append('<h2>Time per stage</h2><img src="stages.png" alt="seconds per stage">')
-    if gaussian_counts is not None and len(gaussian_counts[0]):
+    counted = gaussian_counts is not None and len(gaussian_counts[0]) > 0
+    if counted:
         _plot_gaussian_counts(*gaussian_counts, report_dir / "gaussians.png")
-    if (gaussian_counts is not None and len(gaussian_counts[0])) or \
-            (keep_figures and (report_dir / "gaussians.png").is_file()):
+    if counted or (keep_figures and (report_dir / "gaussians.png").is_file()):
         sections.append('<h2>Gaussians</h2><img src="gaussians.png" alt="Gaussian count over time">')
     sections.append("<h2>Metrics</h2>" + _metrics_table(metrics_json(metrics)))
     generated = datetime.datetime.now().isoformat(timespec="seconds")

@@ -84,14 +84,14 @@ def evaluate_trajectory(
 
     ``align="sim3"`` also estimates scale (monocular trajectories); ``"none"`` compares as given.
     """
+    if len(traj_est) < 3:
+        raise TrajectoryEvaluationError(f"the estimate has {len(traj_est)} poses; ATE needs at least 3 (an alignment "
+                                        "is fitted to them)")
     try:
         evo_ref, evo_est = sync.associate_trajectories(_to_evo(traj_ref), _to_evo(traj_est), max_diff=max_time_difference_s)
     except sync.SyncException:
         evo_est = None
     matched = 0 if evo_est is None else evo_est.num_poses
-    if len(traj_est) < 3:
-        raise TrajectoryEvaluationError(f"the estimate has {len(traj_est)} poses; ATE needs at least 3 (an alignment "
-                                        "is fitted to them)")
     if matched < 3:
         raise TrajectoryEvaluationError(
             f"only {matched} of {len(traj_est)} estimated poses lie within {max_time_difference_s} s of a reference "
