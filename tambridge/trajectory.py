@@ -9,7 +9,7 @@ import numpy as np
 
 from tambridge.errors import TrajectoryFormatError
 from tambridge.files import atomic_write_text, read_text_file
-from tambridge.geometry import pose_from_tum, tum_from_pose
+from tambridge.geometry import pose_from_tum, poses_along, tum_from_pose
 
 
 @dataclasses.dataclass
@@ -47,6 +47,25 @@ class Trajectory:
             later_is_nearer = self.timestamps_s[after] - timestamps_s < timestamps_s - self.timestamps_s[before]
             rows = np.where(later_is_nearer, after, before)
         return Trajectory(self.timestamps_s[rows], self.world_from_camera[rows])
+
+    def bridged(self, localised: np.ndarray) -> "Trajectory":
+        """The trajectory with every pose not ``localised`` (N,) bool that lies between two localised ones moved onto
+        the SE(3) geodesic between the nearest localised poses before and after it, at its time (constant velocity
+        over the gap); poses before the first or after the last localised one stay as they are. A frame a tracker
+        could not place otherwise keeps a prediction from the past alone, which runs off wherever the camera turned
+        during the gap."""
+        localised = np.asarray(localised, bool)
+        assert localised.shape == (len(self),), (localised.shape, len(self))
+        anchors = np.flatnonzero(localised)
+        if len(anchors) < 2:
+            return Trajectory(self.timestamps_s.copy(), self.world_from_camera.copy())
+        gaps = np.flatnonzero(~localised)
+        gaps = gaps[(gaps > anchors[0]) & (gaps < anchors[-1])]
+        world_from_camera = self.world_from_camera.copy()
+        if len(gaps):
+            world_from_camera[gaps] = poses_along(self.timestamps_s[anchors], self.world_from_camera[anchors],
+                                                  self.timestamps_s[gaps])
+        return Trajectory(self.timestamps_s.copy(), world_from_camera)
 
 
 def parse_tum_trajectory(text: str, source: str) -> Trajectory:

@@ -10,7 +10,7 @@ import pytest
 from tambridge.evaluation.trajectory import ate_rmse_m, evaluate_trajectory
 from tambridge.frontend.orb.frontend import OrbFrontend
 from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, scaled_for_image
-from tambridge.geometry import inverse, look_at
+from tambridge.geometry import interpolate_pose, inverse, look_at
 from tambridge.io.synthetic import default_camera, make_room_scene, render
 from tambridge.io.tum import Frame, open_sequence
 from tambridge.trajectory import Trajectory
@@ -147,6 +147,34 @@ def test_a_kidnapped_camera_is_relocalised_and_tracked_on(sequence):
     for result, index in zip(results, range(kidnapped_to, kidnapped_to + 4)):
         truth = world_from_first @ sequence.ground_truth.world_from_camera[index]
         assert np.linalg.norm(result.world_from_camera[:3, 3] - truth[:3, 3]) < 0.03, index
+
+
+def test_lost_frames_and_an_unjoined_segments_start_lie_between_the_tracked_frames(sequence):
+    """Frames 15-17 blank (lost), then frame 18 a texture nothing in the map has, with its depth: it starts map
+    segment 1 at the predicted pose. The camera then shows frames 8-12 of the loop again (restamped as 19-23):
+    frame 19 relocalises against segment 0's keyframes. No loop joins segment 1, so its first keyframe's pose is
+    still the prediction: in the final trajectory that frame and the lost ones lie on the geodesic between frames 14
+    and 19, not at their predictions."""
+    frames = [sequence[i] for i in range(len(sequence))]
+    rng = np.random.default_rng(0)
+    blank = [dataclasses.replace(frame, rgb=np.zeros_like(frame.rgb), depth_m=np.zeros_like(frame.depth_m)) for frame in frames[15:18]]
+    unknown = dataclasses.replace(frames[18], rgb=rng.integers(0, 256, frames[18].rgb.shape, dtype=np.uint8))
+    again = [dataclasses.replace(frames[index], index=19 + step, timestamp_s=frames[18].timestamp_s + (step + 1) / 30.0)
+             for step, index in enumerate(range(8, 13))]
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False))
+    results = [frontend.track(frame) for frame in frames[:15] + blank + [unknown] + again]
+    final = frontend.finish()
+
+    assert [r.tracked for r in results[15:19]] == [False] * 4 and (results[19].tracked, results[19].relocalised) == (True, True)
+    segment_of_frame = {k.frame_index: k.segment for k in frontend.map.keyframes}
+    assert segment_of_frame[18] == 1 and not frontend.map.loop_edges
+    poses, times = final.trajectory.world_from_camera, final.trajectory.timestamps_s
+    for row in range(15, 19):
+        fraction = (times[row] - times[14]) / (times[19] - times[14])
+        np.testing.assert_allclose(poses[row], interpolate_pose(poses[14], poses[19], fraction), atol=1e-9)
+    # The keyframe list keeps segment 1's first keyframe where it was made (nothing ties it to the map).
+    keyframe_18 = next(k for k in frontend.map.keyframes if k.frame_index == 18)
+    np.testing.assert_allclose(final.keyframe_poses[keyframe_18.id], results[18].world_from_camera, atol=1e-9)
 
 
 def test_a_requested_keyframe_is_the_next_tracked_frame(sequence):

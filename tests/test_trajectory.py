@@ -3,7 +3,7 @@ import pytest
 
 from tambridge.errors import TrajectoryFormatError
 from tambridge.evaluation.trajectory import ate_rmse_m, evaluate_trajectory
-from tambridge.geometry import exp_se3
+from tambridge.geometry import exp_se3, interpolate_pose, poses_along
 from tambridge.io.synthetic import loop_path
 from tambridge.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
 
@@ -108,3 +108,32 @@ def test_too_few_poses_or_none_on_the_clock_are_told_apart():
         evaluate_trajectory(Trajectory(truth.timestamps_s[:2], poses[:2]), truth)
     with pytest.raises(TrajectoryEvaluationError, match=r"^only 0 of 10 estimated poses lie within 0.02 s"):
         evaluate_trajectory(Trajectory(truth.timestamps_s + 100.0, poses), truth)
+
+
+def test_bridged_moves_unlocalised_poses_onto_the_geodesic_between_their_neighbours():
+    reference = _reference(40)
+    localised = np.ones(40, bool)
+    localised[[0, 1, 10, 11, 12, 25, 39]] = False
+    rng = np.random.default_rng(3)
+    garbage = reference.world_from_camera.copy()
+    garbage[~localised] = np.stack([exp_se3(rng.normal(0.0, 0.5, 6)) for _ in range(int((~localised).sum()))])
+    bridged = Trajectory(reference.timestamps_s, garbage).bridged(localised)
+
+    # Before the first and after the last localised pose nothing can bridge: those stay as they were.
+    for row in (0, 1, 39):
+        np.testing.assert_array_equal(bridged.world_from_camera[row], garbage[row])
+    np.testing.assert_array_equal(bridged.world_from_camera[localised], reference.world_from_camera[localised])
+    # The three-frame gap 10-12 lies between poses 9 and 13, at a quarter, half and three quarters of the way.
+    start, end = reference.world_from_camera[9], reference.world_from_camera[13]
+    for row, fraction in ((10, 0.25), (11, 0.5), (12, 0.75)):
+        np.testing.assert_allclose(bridged.world_from_camera[row], interpolate_pose(start, end, fraction), atol=1e-9)
+    np.testing.assert_allclose(bridged.world_from_camera[25], interpolate_pose(reference.world_from_camera[24],
+                                                                               reference.world_from_camera[26], 0.5), atol=1e-9)
+    # On the curving loop the constant-velocity prediction from before the gap runs off as the gap goes on; the
+    # geodesic's largest error over the gap is under half of the prediction's.
+    times, poses = reference.timestamps_s, reference.world_from_camera
+    predicted = poses_along(times[[8, 9]], poses[[8, 9]], times[[10, 11, 12]])[:, :3, 3]
+    bridged_error = np.linalg.norm(bridged.positions_m[[10, 11, 12]] - reference.positions_m[[10, 11, 12]], axis=1)
+    predicted_error = np.linalg.norm(predicted - reference.positions_m[[10, 11, 12]], axis=1)
+    assert bridged_error.max() < 0.5 * predicted_error.max(), (bridged_error, predicted_error)
+    assert len(Trajectory(reference.timestamps_s[:1], garbage[:1]).bridged(np.zeros(1, bool))) == 1

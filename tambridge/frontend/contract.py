@@ -92,7 +92,8 @@ class FrontendResult:
     """Final poses after loop closure and global BA.
 
     ``trajectory`` has every frame given to ``track`` (non-keyframes re-anchored to their reference keyframe
-    after corrections), ``tracked`` (N,) bool says which were localised; ``keyframe_trajectory`` the keyframes;
+    after corrections; a frame not localised between two localised ones on the geodesic between them,
+    :meth:`~tambridge.trajectory.Trajectory.bridged`), ``tracked`` (N,) bool says which were localised; ``keyframe_trajectory`` the keyframes;
     ``keyframe_poses`` keyframe id -> 4x4; ``keyframe_frame_indices`` keyframe id -> frame index. These three list
     every keyframe ever announced by a :class:`KeyframeEvent`, culled ones included (``keyframes_culled`` of
     them, ORB only): a culled keyframe's pose is its parent keyframe's final pose times the relative pose it had

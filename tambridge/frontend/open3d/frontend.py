@@ -222,7 +222,9 @@ class Open3dFrontend:
         poses = [self._keyframes[k].world_from_camera @ relative for _, _, k, relative, _ in self._records]
         keyframes = self._keyframes
         return FrontendResult(
-            trajectory=Trajectory(np.array([r[1] for r in self._records]), np.stack(poses)),
+            # A frame whose odometry failed has the prediction from the frames before it; those after it place it better.
+            trajectory=Trajectory(np.array([r[1] for r in self._records]), np.stack(poses)).bridged(
+                np.array([r[4] for r in self._records], bool)),
             tracked=np.array([r[4] for r in self._records], bool),
             keyframe_trajectory=Trajectory(np.array([k.timestamp_s for k in keyframes]), np.stack([k.world_from_camera for k in keyframes])),
             keyframe_poses=self.keyframe_poses(),

@@ -12,7 +12,8 @@ descriptor), runs local BA, and looks for a loop (bag of words, candidates consi
 keyframes, PnP verification, pose graph, point fusion). A frame the local map cannot place tries
 relocalisation against the keyframes, then its depth alone against the last keyframe's surface
 (``depth_only_tracking``); failing both it is lost, reported (warning) and, after a few failures, a new
-map segment starts, to be joined to the old one by the next loop closure. ``finish()`` runs global BA and
+map segment starts, to be joined to the old one by the next loop closure. Lost frames between tracked ones end
+on the path between them (:meth:`~tambridge.trajectory.Trajectory.bridged`). ``finish()`` runs global BA and
 re-anchors every frame to its reference keyframe.
 
 Keyframe culling (``keyframe_culling``, ORB-SLAM's KeyFrameCulling after local BA) takes redundant keyframes
@@ -378,6 +379,23 @@ class OrbFrontend:
                     return fix, np.zeros(0, np.int64)
         return None
 
+    def _placed_segments(self) -> set[int]:
+        """The map segments in the first keyframe's world: its own, and those a loop edge ties to a placed one. The
+        others began at a predicted pose and were never joined: their poses keep that prediction's error."""
+        segment_of = {k.id: k.segment for k in self.map.keyframes}
+        if not segment_of:
+            return set()
+        placed = {segment_of[0]}
+        ties = [(segment_of[a], segment_of[b]) for a, b, _ in self.map.loop_edges]
+        grown = True
+        while grown:
+            grown = False
+            for a, b in ties:
+                if (a in placed) != (b in placed):
+                    placed |= {a, b}
+                    grown = True
+        return placed
+
     def _lost(self, frame: Frame, features: FrameFeatures, reason: str) -> TrackResult:
         """Count and report a frame that could not be localised; its pose is the constant-velocity prediction."""
         self.frames_lost += 1
@@ -622,10 +640,17 @@ class OrbFrontend:
             else:
                 poses.append(self.map.keyframes[record.reference_keyframe].world_from_camera @ record.reference_from_camera)
         keyframes = self.map.keyframes
+        trajectory = Trajectory(np.array([r.timestamp_s for r in self._records]), np.stack(poses) if poses else np.zeros((0, 4, 4)))
+        # A lost frame's pose was predicted from the frames before it alone; the frames after it place it better. So is
+        # the first keyframe of a segment that no loop joined; one that was joined has its pose from the map.
+        placed = self._placed_segments()
+        placed_keyframe_frames = {k.frame_index for k in keyframes if k.segment in placed}
+        trajectory = trajectory.bridged(np.array([r.tracked or r.frame_index in placed_keyframe_frames
+                                                  for r in self._records], bool))
         points = self.map.points
         good = np.flatnonzero(~points.bad[: points.count] & (points.observations[: points.count] > 0))
         return FrontendResult(
-            trajectory=Trajectory(np.array([r.timestamp_s for r in self._records]), np.stack(poses)) if poses else Trajectory(np.zeros(0), np.zeros((0, 4, 4))),
+            trajectory=trajectory,
             tracked=np.array([r.tracked for r in self._records], bool),
             keyframe_trajectory=Trajectory(np.array([k.timestamp_s for k in keyframes]),
                                            np.stack([k.world_from_camera for k in keyframes]) if keyframes else np.zeros((0, 4, 4))),
