@@ -139,7 +139,9 @@ def test_a_kidnapped_camera_is_relocalised_and_tracked_on(sequence):
     for frame in frames[:25]:
         frontend.track(frame)
     kidnapped_to, interval_s = 3, frames[1].timestamp_s - frames[0].timestamp_s
-    stream = [dataclasses.replace(frames[index], index=25 + step, timestamp_s=frames[24].timestamp_s + (step + 1) * interval_s)
+    # Depth restamped with its colour: the stamps of the frames shown again would put their depth a second away.
+    stream = [dataclasses.replace(frames[index], index=25 + step, timestamp_s=frames[24].timestamp_s + (step + 1) * interval_s,
+                                  depth_timestamp_s=frames[24].timestamp_s + (step + 1) * interval_s)
               for step, index in enumerate(range(kidnapped_to, kidnapped_to + 4))]
     results = [frontend.track(frame) for frame in stream]
     assert [(r.tracked, r.relocalised) for r in results] == [(True, True)] + [(True, False)] * 3
@@ -149,25 +151,35 @@ def test_a_kidnapped_camera_is_relocalised_and_tracked_on(sequence):
         assert np.linalg.norm(result.world_from_camera[:3, 3] - truth[:3, 3]) < 0.03, index
 
 
-def test_lost_frames_and_an_unjoined_segments_start_lie_between_the_tracked_frames(sequence):
+def test_relocalising_into_the_first_segment_takes_tracking_back_into_it(sequence, caplog):
     """Frames 15-17 blank (lost), then frame 18 a texture nothing in the map has, with its depth: it starts map
-    segment 1 at the predicted pose. The camera then shows frames 8-12 of the loop again (restamped as 19-23):
-    frame 19 relocalises against segment 0's keyframes. No loop joins segment 1, so its first keyframe's pose is
-    still the prediction: in the final trajectory that frame and the lost ones lie on the geodesic between frames 14
-    and 19, not at their predictions."""
+    segment 1 at the predicted pose. The camera then shows frames 8-21 of the loop again (restamped as 19-32):
+    frame 19 relocalises against segment 0's keyframes, and tracking goes on in segment 0: the keyframes it makes
+    past frame 14's view belong to it (local BA and point fusion work within one segment), and the frames are tracked as before the loss.
+    No loop joins segment 1, so its first keyframe's pose is still the prediction: in the final trajectory that
+    frame and the lost ones lie on the geodesic between frames 14 and 19, not at their predictions."""
     frames = [sequence[i] for i in range(len(sequence))]
     rng = np.random.default_rng(0)
     blank = [dataclasses.replace(frame, rgb=np.zeros_like(frame.rgb), depth_m=np.zeros_like(frame.depth_m)) for frame in frames[15:18]]
     unknown = dataclasses.replace(frames[18], rgb=rng.integers(0, 256, frames[18].rgb.shape, dtype=np.uint8))
-    again = [dataclasses.replace(frames[index], index=19 + step, timestamp_s=frames[18].timestamp_s + (step + 1) / 30.0)
-             for step, index in enumerate(range(8, 13))]
+    again = [dataclasses.replace(frames[index], index=19 + step, timestamp_s=frames[18].timestamp_s + (step + 1) / 30.0,
+                                 depth_timestamp_s=frames[18].timestamp_s + (step + 1) / 30.0)
+             for step, index in enumerate(range(8, 22))]
     frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False))
-    results = [frontend.track(frame) for frame in frames[:15] + blank + [unknown] + again]
+    with caplog.at_level(logging.INFO, logger="tambridge.frontend"):
+        results = [frontend.track(frame) for frame in frames[:15] + blank + [unknown] + again]
     final = frontend.finish()
 
     assert [r.tracked for r in results[15:19]] == [False] * 4 and (results[19].tracked, results[19].relocalised) == (True, True)
     segment_of_frame = {k.frame_index: k.segment for k in frontend.map.keyframes}
     assert segment_of_frame[18] == 1 and not frontend.map.loop_edges
+    after = [segment for frame_index, segment in segment_of_frame.items() if frame_index > 18]
+    assert after and set(after) == {0}
+    assert any("back in map segment 0" in record.getMessage() for record in caplog.records)
+    world_from_first = inverse(sequence.ground_truth.world_from_camera[0])
+    for result, index in zip(results[19:], range(8, 22)):
+        truth = world_from_first @ sequence.ground_truth.world_from_camera[index]
+        assert np.linalg.norm(result.world_from_camera[:3, 3] - truth[:3, 3]) < 0.03, index
     poses, times = final.trajectory.world_from_camera, final.trajectory.timestamps_s
     for row in range(15, 19):
         fraction = (times[row] - times[14]) / (times[19] - times[14])

@@ -213,6 +213,12 @@ class OrbFrontend:
         if relocalised:
             # The jump to a relocalised pose is no velocity (ORB-SLAM clears its motion model here too).
             self._motion = np.eye(4)
+            if self._reference.segment != self._segment:
+                # Placed in an earlier segment's map: the frame is in that segment's world, and so are the keyframes it
+                # makes (local BA, point fusion and the choice of reference keyframe work within one segment).
+                logger.info("frame %d (t=%.6f): back in map segment %d (relocalised against keyframe %d)",
+                            frame.index, frame.timestamp_s, self._reference.segment, self._reference.id)
+                self._segment = self._reference.segment
         elif not self._lost_streak:
             # After lost frames the last pose was a prediction: keep the velocity from before the loss.
             features, fix = self._refined_at_frame_time(frame, features, fix, camera_from_world_last, dense)
@@ -373,6 +379,9 @@ class OrbFrontend:
                                self.config.relocalisation_min_inliers)
                 if fix is not None and fix.inlier_count >= self.config.relocalisation_min_inliers:
                     self._reference = keyframe
+                    # The depth term against the last keyframe's surface would pull the frame towards where that
+                    # keyframe is, which after a loss may be another place or a segment's guessed pose.
+                    self._dense_reference = keyframe.depth_reference
                     tracked, in_view, _ = self._track_local_map(features, grid, fix.camera_from_world, 1.0, depth_m)
                     if tracked is not None and tracked.inlier_count >= fix.inlier_count:
                         return tracked, in_view
@@ -423,7 +432,7 @@ class OrbFrontend:
             camera_from_world = inverse(self._world_from_first)
         else:
             camera_from_world = self._motion @ camera_from_world_last
-        self._segment += 1
+        self._segment = 1 + max((k.segment for k in self.map.keyframes), default=-1)
         fix = PoseFix(camera_from_world, np.zeros(0, np.int64), np.zeros(0, np.int64))
         keyframe = self._insert_keyframe(frame, features, fix, run_mapping=False)
         if previous is not None:
