@@ -189,6 +189,38 @@ def test_relocalising_into_the_first_segment_takes_tracking_back_into_it(sequenc
     np.testing.assert_allclose(final.keyframe_poses[keyframe_18.id], results[18].world_from_camera, atol=1e-9)
 
 
+def test_relocalisation_never_moves_tracking_into_an_unjoined_segment(sequence, caplog):
+    """Frames 0-14, three blank frames, then frames 18-21 mirrored left to right (a scene the map does not have,
+    with its mirrored depth): they start map segment 1 at the predicted pose and are tracked in it. Frames 10-12
+    shown again relocalise into segment 0. Mirrored frames 20-21 shown then match only segment 1, which no loop
+    joined to the first keyframe's world: relocalising there would put tracking back into the guessed pose, so
+    they are lost, and frame 12 after them is tracked in segment 0."""
+    frames = [sequence[i] for i in range(len(sequence))]
+
+    def shown(view: int, index: int, mirrored: bool = False, blank: bool = False) -> Frame:
+        rgb, depth_m = frames[view].rgb, frames[view].depth_m
+        if mirrored:
+            rgb, depth_m = np.ascontiguousarray(rgb[:, ::-1]), np.ascontiguousarray(depth_m[:, ::-1])
+        if blank:
+            rgb, depth_m = np.zeros_like(rgb), np.zeros_like(depth_m)
+        return dataclasses.replace(frames[view], index=index, timestamp_s=index / 30.0, depth_timestamp_s=index / 30.0,
+                                   rgb=rgb, depth_m=depth_m)
+
+    plan = ([(view, {}) for view in range(15)] + [(view, dict(blank=True)) for view in (15, 16, 17)]
+            + [(view, dict(mirrored=True)) for view in (18, 19, 20, 21)] + [(10, {}), (11, {}), (12, {})]
+            + [(20, dict(mirrored=True)), (21, dict(mirrored=True)), (12, {})])
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False))
+    with caplog.at_level(logging.INFO, logger="tambridge.frontend"):
+        results = [frontend.track(shown(view, index, **kind)) for index, (view, kind) in enumerate(plan)]
+
+    assert {k.frame_index: k.segment for k in frontend.map.keyframes}[18] == 1 and not frontend.map.loop_edges
+    assert all(r.tracked for r in results[19:22]) and (results[22].tracked, results[22].relocalised) == (True, True)
+    assert [r.tracked for r in results[25:27]] == [False, False] and results[27].tracked
+    messages = [record.getMessage() for record in caplog.records]
+    assert any("back in map segment 0" in m for m in messages)
+    assert not any("back in map segment 1" in m for m in messages)
+
+
 def test_a_requested_keyframe_is_the_next_tracked_frame(sequence):
     """``request_keyframe`` (the mapper's coverage rule) makes the next frame a keyframe where the ORB rule does
     not, once. The rule is slowed here (no frame-count or close-point trigger) so that frame 2 is not one by itself."""

@@ -365,15 +365,19 @@ class OrbFrontend:
 
     def _relocalise(self, features: FrameFeatures, grid, depth_m: np.ndarray) -> tuple[PoseFix, np.ndarray] | None:
         """Bag-of-words candidates, each verified by :func:`localise`; then the local map around the winner, with the
-        dense depth term of ``depth_m`` (H, W) metres as in tracking."""
+        dense depth term of ``depth_m`` (H, W) metres as in tracking. Candidates are keyframes of the current
+        segment or of one in the first keyframe's world: a segment that began at a predicted pose and was never
+        joined would move tracking into that prediction's error."""
         if len(features) < self.config.relocalisation_min_inliers:
             return None
         with self._timed("loop"):
             words, weights = self.vocabulary.transform(features.descriptors)
             candidates, _ = self.database.query(words, weights)
+            reachable = self._placed_segments() | {self._segment}
+            candidates = [int(i) for i in candidates if self.map.keyframes[int(i)].segment in reachable]
         with self._timed("pnp"):
             for keyframe_id in candidates[:RELOCALISATION_CANDIDATES]:
-                keyframe = self.map.keyframes[int(keyframe_id)]
+                keyframe = self.map.keyframes[keyframe_id]
                 group = [keyframe] + [self.map.keyframes[i] for i in keyframe.best_covisible(5)]
                 fix = localise(self.map, features, grid, self.map.points_of(group), self.camera, self.config,
                                self.config.relocalisation_min_inliers)
