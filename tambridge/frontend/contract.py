@@ -93,7 +93,8 @@ class FrontendResult:
 
     ``trajectory`` has every frame given to ``track`` (non-keyframes re-anchored to their reference keyframe
     after corrections; a frame not localised between two localised ones on the geodesic between them,
-    :meth:`~tambridge.trajectory.Trajectory.bridged`), ``tracked`` (N,) bool says which were localised; ``keyframe_trajectory`` the keyframes;
+    :meth:`~tambridge.trajectory.Trajectory.bridged`, where ORB also counts the first keyframe of a segment
+    joined to the first keyframe's world as localised), ``tracked`` (N,) bool says which were localised; ``keyframe_trajectory`` the keyframes;
     ``keyframe_poses`` keyframe id -> 4x4; ``keyframe_frame_indices`` keyframe id -> frame index. These three list
     every keyframe ever announced by a :class:`KeyframeEvent`, culled ones included (``keyframes_culled`` of
     them, ORB only): a culled keyframe's pose is its parent keyframe's final pose times the relative pose it had

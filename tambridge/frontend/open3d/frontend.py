@@ -220,12 +220,12 @@ class Open3dFrontend:
             with self._timed("global_ba"):
                 self._optimise()
         poses = [self._keyframes[k].world_from_camera @ relative for _, _, k, relative, _ in self._records]
+        tracked = np.array([r[4] for r in self._records], bool)
         keyframes = self._keyframes
         return FrontendResult(
             # A frame whose odometry failed has the prediction from the frames before it; those after it place it better.
-            trajectory=Trajectory(np.array([r[1] for r in self._records]), np.stack(poses)).bridged(
-                np.array([r[4] for r in self._records], bool)),
-            tracked=np.array([r[4] for r in self._records], bool),
+            trajectory=Trajectory(np.array([r[1] for r in self._records]), np.stack(poses)).bridged(tracked),
+            tracked=tracked,
             keyframe_trajectory=Trajectory(np.array([k.timestamp_s for k in keyframes]), np.stack([k.world_from_camera for k in keyframes])),
             keyframe_poses=self.keyframe_poses(),
             keyframe_frame_indices={k.id: k.frame_index for k in keyframes},

@@ -10,7 +10,7 @@ Tracking a frame decides whether it becomes a keyframe
 (ORB-SLAM2's rules); a keyframe adds map points from its depth, culls bad recent points, fuses duplicates (points keep their most distinctive
 descriptor), runs local BA, and looks for a loop (bag of words, candidates consistent over consecutive
 keyframes, PnP verification, pose graph, point fusion). A frame the local map cannot place tries
-relocalisation against the keyframes, then its depth alone against the last keyframe's surface
+relocalisation against the keyframes, then its depth alone against the dense term's keyframe surface
 (``depth_only_tracking``); failing both it is lost, reported (warning) and, after a few failures, a new
 map segment starts, to be joined to the old one by the next loop closure. Lost frames between tracked ones end
 on the path between them (:meth:`~tambridge.trajectory.Trajectory.bridged`). ``finish()`` runs global BA and
@@ -120,7 +120,9 @@ class OrbFrontend:
         self._last: _FrameRecord | None = None
         self._motion = np.eye(4)  # current_from_previous camera motion: the constant-velocity prior
         self._reference: Keyframe | None = None
-        # The last keyframe's depth, for the dense depth term (None with dense_depth off or before the first).
+        # The keyframe surface of the dense depth term: the last keyframe's, or after a relocalisation the relocalising
+        # keyframe's bundle-adjustment surface until the next keyframe (None with dense_depth off, before the first
+        # keyframe, or after a relocalisation with ba_dense_depth off).
         self._dense_reference: DenseReference | None = None
         self.frames_with_dense_depth = 0
         self._frames_since_keyframe = 0
@@ -281,8 +283,8 @@ class OrbFrontend:
                                               self.map, self.K, self.config, dense)
 
     def _dense_term(self, depth_m: np.ndarray, matches: int) -> DenseTerm | None:
-        """The point-to-plane depth term against the last keyframe's depth, where ``dense_depth`` asks for it
-        (auto: fewer than ``dense_auto_max_matches`` matches or a motion prior turning fast); else None."""
+        """The point-to-plane depth term against the keyframe surface (``_dense_reference``), where ``dense_depth``
+        asks for it (auto: fewer than ``dense_auto_max_matches`` matches or a motion prior turning fast); else None."""
         config = self.config
         if config.dense_depth == DenseDepthUse.never or self._dense_reference is None:
             return None
@@ -294,7 +296,7 @@ class OrbFrontend:
         return self._dense_term_of(depth_m)
 
     def _dense_term_of(self, depth_m: np.ndarray) -> DenseTerm:
-        """The depth term of ``depth_m`` (H, W) against the last keyframe's depth (there must be one)."""
+        """The depth term of ``depth_m`` (H, W) against the keyframe surface (there must be one)."""
         config = self.config
         reference = self._dense_reference
         with self._timed("pnp"):
@@ -305,10 +307,11 @@ class OrbFrontend:
 
     def _track_by_depth(self, frame: Frame, predicted: np.ndarray, camera_from_world_last: np.ndarray) -> TrackResult | None:
         """The frame tracked by the depth term alone (:func:`align_depth` from the motion prior ``predicted``) against
-        the last keyframe's surface, where ORB could not place it and ``depth_only_tracking`` allows: right after a
-        tracked frame (the prior is a tracked pose's), and only where the pose found keeps ``depth_only_min_share``
-        of the frame's depth on the surface and the surface holds every motion (``depth_only_min_conditioning``);
-        else None. Such a frame brings no map points, so it never becomes a keyframe."""
+        the keyframe surface (``_dense_reference``), where ORB could not place it and ``depth_only_tracking`` allows:
+        right after a tracked frame (the prior is a tracked pose's), and only where the pose found keeps
+        ``depth_only_min_share`` of the frame's depth on the surface and the surface holds every motion
+        (``depth_only_min_conditioning``); else None. Such a frame brings no map points, so it never becomes a
+        keyframe."""
         config = self.config
         # No keyframe depth is kept with dense_depth never: the reference is None then.
         if not config.depth_only_tracking or self._dense_reference is None or self._lost_streak:
@@ -383,9 +386,10 @@ class OrbFrontend:
                                self.config.relocalisation_min_inliers)
                 if fix is not None and fix.inlier_count >= self.config.relocalisation_min_inliers:
                     self._reference = keyframe
-                    # The depth term against the last keyframe's surface would pull the frame towards where that
-                    # keyframe is, which after a loss may be another place or a segment's guessed pose.
-                    self._dense_reference = keyframe.depth_reference
+                    if self.config.dense_depth != DenseDepthUse.never:
+                        # The last keyframe's surface would pull the frame towards where that keyframe is, which after a
+                        # loss may be another place or a segment's guessed pose; this keyframe's is where the frame is.
+                        self._dense_reference = keyframe.depth_reference
                     tracked, in_view, _ = self._track_local_map(features, grid, fix.camera_from_world, 1.0, depth_m)
                     if tracked is not None and tracked.inlier_count >= fix.inlier_count:
                         return tracked, in_view
@@ -395,11 +399,9 @@ class OrbFrontend:
     def _placed_segments(self) -> set[int]:
         """The map segments in the first keyframe's world: its own, and those a loop edge ties to a placed one. The
         others began at a predicted pose and were never joined: their poses keep that prediction's error."""
-        segment_of = {k.id: k.segment for k in self.map.keyframes}
-        if not segment_of:
-            return set()
-        placed = {segment_of[0]}
-        ties = [(segment_of[a], segment_of[b]) for a, b, _ in self.map.loop_edges]
+        keyframes = self.map.keyframes
+        placed = {keyframes[0].segment} if keyframes else set()
+        ties = [(keyframes[a].segment, keyframes[b].segment) for a, b, _ in self.map.loop_edges]
         grown = True
         while grown:
             grown = False
@@ -654,8 +656,9 @@ class OrbFrontend:
                 poses.append(self.map.keyframes[record.reference_keyframe].world_from_camera @ record.reference_from_camera)
         keyframes = self.map.keyframes
         trajectory = Trajectory(np.array([r.timestamp_s for r in self._records]), np.stack(poses) if poses else np.zeros((0, 4, 4)))
-        # A lost frame's pose was predicted from the frames before it alone; the frames after it place it better. So is
-        # the first keyframe of a segment that no loop joined; one that was joined has its pose from the map.
+        # A lost frame's pose was predicted from the frames before it alone; the frames after it place it better. The
+        # first keyframe of a segment that no loop joined has such a prediction too; a joined one has its pose from the
+        # map. (Frames tracked in an unjoined segment stay: their motion is measured, their offset is that guess.)
         placed = self._placed_segments()
         placed_keyframe_frames = {k.frame_index for k in keyframes if k.segment in placed}
         trajectory = trajectory.bridged(np.array([r.tracked or r.frame_index in placed_keyframe_frames

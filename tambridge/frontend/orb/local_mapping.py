@@ -170,8 +170,9 @@ def _inv_sigma2(octaves: np.ndarray, scale_factor: float) -> np.ndarray:
 def depth_pairs(slam_map: SlamMap, cameras: list[int], variable_ids: set[int], K: np.ndarray,
                 config: OrbFrontendConfig) -> tuple[DepthPair, ...]:
     """Depth edges of a BA over keyframes ``cameras`` (ids, sorted): each keyframe's depth against each of the
-    ``config.ba_dense_neighbours`` previous live keyframes of its segment, where both are in the problem and one of
-    them moves."""
+    ``config.ba_dense_neighbours`` previous live keyframes, where both are in the problem, one of them moves, and
+    no keyframe of another segment lies between them in id order (tracking that relocalised into an earlier
+    segment may have lost the camera between the two, so they need not overlap)."""
     if not config.ba_dense_depth:
         return ()
     position = {kf_id: i for i, kf_id in enumerate(cameras)}
