@@ -4,6 +4,7 @@ import dataclasses
 import logging
 import time
 
+import cv2
 import numpy as np
 import pytest
 
@@ -219,6 +220,64 @@ def test_relocalisation_never_moves_tracking_into_an_unjoined_segment(sequence, 
     messages = [record.getMessage() for record in caplog.records]
     assert any("back in map segment 0" in m for m in messages)
     assert not any("back in map segment 1" in m for m in messages)
+
+
+@pytest.mark.parametrize("ransac_min_inliers", [15, 50], ids=["two-stage", "one-stage"])
+def test_a_blurred_frame_relocalises_through_the_projection_search(sequence, ransac_min_inliers):
+    """After three blank frames, frame 11 blurred by a 7 px box: its descriptors match few map points by brute force,
+    under the 50 inliers a relocalisation keeps, but a pose from those few finds the rest by projection. With
+    PnP-RANSAC asked for 15 (the default, ORB-SLAM's way) it relocalises near the truth; asked for all 50 at once
+    it is lost and starts a new map segment."""
+    frames = [sequence[i] for i in range(len(sequence))]
+    stream = frames[:15] + [dataclasses.replace(frame, rgb=np.zeros_like(frame.rgb), depth_m=np.zeros_like(frame.depth_m))
+                            for frame in frames[15:18]]
+    blurred = dataclasses.replace(frames[11], index=18, timestamp_s=18 / 30.0, depth_timestamp_s=18 / 30.0,
+                                  rgb=cv2.blur(frames[11].rgb, (7, 7)))
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False,
+                                                              relocalisation_ransac_min_inliers=ransac_min_inliers))
+    for frame in stream:
+        frontend.track(frame)
+    result = frontend.track(blurred)
+    if ransac_min_inliers == 15:
+        assert result.tracked and result.relocalised and result.inlier_count >= 50
+        truth = inverse(sequence.ground_truth.world_from_camera[0]) @ sequence.ground_truth.world_from_camera[11]
+        assert np.linalg.norm(result.world_from_camera[:3, 3] - truth[:3, 3]) < 0.05  # blurred keypoints: 3.6 cm here
+    else:
+        assert not result.tracked and result.is_keyframe  # the first keyframe of segment 1
+
+
+def test_a_segment_no_loop_joined_joins_the_map_at_the_end(sequence, caplog):
+    """Frames 0-14, three blank frames, then frames 23 down to 12: frame 23 sees too little of what the map has to
+    relocalise, so it starts map segment 1 at the pose predicted from before the blank frames (about 0.65 m from
+    where it is), and the camera turns back through frames 22-12 tracked in segment 1, into the part of the room
+    segment 0 has. No loop closes during the run. At the end segment 1's newest keyframe localises against segment
+    0's points and closes a loop there: segment 1 is moved into the first keyframe's world, and its frames end
+    within 3 cm of the truth."""
+    frames = [sequence[i] for i in range(len(sequence))]
+
+    def shown(view: int, index: int, blank: bool = False) -> Frame:
+        rgb, depth_m = frames[view].rgb, frames[view].depth_m
+        if blank:
+            rgb, depth_m = np.zeros_like(rgb), np.zeros_like(depth_m)
+        return dataclasses.replace(frames[view], index=index, timestamp_s=index / 30.0, depth_timestamp_s=index / 30.0,
+                                   rgb=rgb, depth_m=depth_m)
+
+    plan = [(view, False) for view in range(15)] + [(view, True) for view in (15, 16, 17)] + [(view, False) for view in range(23, 11, -1)]
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False))
+    for index, (view, blank) in enumerate(plan):
+        frontend.track(shown(view, index, blank))
+    segment_of_frame = {k.frame_index: k.segment for k in frontend.map.keyframes}
+    assert segment_of_frame[18] == 1 and {segment_of_frame[i] for i in segment_of_frame if i > 18} == {1}
+    assert frontend.loops_closed == 0
+    with caplog.at_level(logging.INFO, logger="tambridge.frontend"):
+        final = frontend.finish()
+
+    assert final.loops_closed == 1
+    assert any("map segment 1 joined to the first keyframe's world at the end" in r.getMessage() for r in caplog.records)
+    world_from_first = inverse(sequence.ground_truth.world_from_camera[0])
+    for row in range(18, len(plan)):
+        truth = world_from_first @ sequence.ground_truth.world_from_camera[plan[row][0]]
+        assert np.linalg.norm(final.trajectory.world_from_camera[row][:3, 3] - truth[:3, 3]) < 0.03, row
 
 
 def test_a_requested_keyframe_is_the_next_tracked_frame(sequence):

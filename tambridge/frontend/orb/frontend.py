@@ -12,8 +12,11 @@ descriptor), runs local BA, and looks for a loop (bag of words, candidates consi
 keyframes, PnP verification, pose graph, point fusion). A frame the local map cannot place tries
 relocalisation against the keyframes, then its depth alone against the dense term's keyframe surface
 (``depth_only_tracking``); failing both it is lost, reported (warning) and, after a few failures, a new
-map segment starts, to be joined to the old one by the next loop closure. Lost frames between tracked ones end
-on the path between them (:meth:`~tambridge.trajectory.Trajectory.bridged`). ``finish()`` runs global BA and
+map segment starts, to be joined to the old one by the next loop closure or, at the end, by localising its newest
+keyframes against the whole map. Relocalisation asks few PnP-RANSAC inliers of the descriptor matches and many of
+the pose after a projection search (ORB-SLAM's two bars), and only places a frame in the current segment or one
+joined to the first keyframe's world. Lost frames between tracked ones end on the path between them
+(:meth:`~tambridge.trajectory.Trajectory.bridged`). ``finish()`` runs global BA and
 re-anchors every frame to its reference keyframe.
 
 Keyframe culling (``keyframe_culling``, ORB-SLAM's KeyFrameCulling after local BA) takes redundant keyframes
@@ -55,7 +58,7 @@ from tambridge.frontend.orb.local_mapping import (
     global_bundle_adjustment,
     local_bundle_adjustment,
 )
-from tambridge.frontend.orb.loop_closing import LoopConsistency, close_loop, detect_loop
+from tambridge.frontend.orb.loop_closing import LoopConsistency, LoopDetection, close_loop, detect_loop
 from tambridge.frontend.orb.depth_time import colour_from_depth_motion, depth_at_colour_time
 from tambridge.frontend.orb.dense_depth import DenseReference, DenseTerm, align_depth, dense_reference, dense_samples
 from tambridge.frontend.orb.map_matching import PoseFix, localise, match_map_points, refine_with_matches
@@ -75,6 +78,7 @@ logger = logging.getLogger("tambridge.frontend.orb")
 
 MIN_KEYPOINTS_WITH_DEPTH_TO_START = 50
 LOST_FRAMES_BEFORE_NEW_SEGMENT = 3
+JOIN_KEYFRAMES = 5  # an unjoined segment's newest keyframes tried against the placed map at the end
 RELOCALISATION_CANDIDATES = 5
 # Refinement from the motion prior is kept when at least this fraction of the matches stay inliers.
 PRIOR_MIN_INLIER_FRACTION = 0.5
@@ -383,8 +387,8 @@ class OrbFrontend:
                 keyframe = self.map.keyframes[keyframe_id]
                 group = [keyframe] + [self.map.keyframes[i] for i in keyframe.best_covisible(5)]
                 fix = localise(self.map, features, grid, self.map.points_of(group), self.camera, self.config,
-                               self.config.relocalisation_min_inliers)
-                if fix is not None and fix.inlier_count >= self.config.relocalisation_min_inliers:
+                               self.config.relocalisation_min_inliers, self.config.relocalisation_ransac_min_inliers)
+                if fix is not None:
                     self._reference = keyframe
                     if self.config.dense_depth != DenseDepthUse.never:
                         # The last keyframe's surface would pull the frame towards where that keyframe is, which after a
@@ -395,6 +399,40 @@ class OrbFrontend:
                         return tracked, in_view
                     return fix, np.zeros(0, np.int64)
         return None
+
+    def _join_unplaced_segments(self) -> None:
+        """At the end of the run, every map segment not in the first keyframe's world tries once more to join it: its
+        newest live keyframes (at most ``JOIN_KEYFRAMES``) are localised against every point of the placed segments
+        (:func:`localise`: ``relocalisation_ransac_min_inliers`` of PnP-RANSAC, ``loop_min_inliers`` after the
+        projection search), and the first that localises closes a loop to the placed keyframe that sees most of its
+        inliers. During the run a segment meets the placed map only through the keyframe database's few candidates
+        and consecutive-query checks; the whole map often has the place from another view. A segment that joins is
+        moved into the first keyframe's world (pose graph, then global BA), its frames with it."""
+        config = self.config
+        if not config.loop_closure:
+            return
+        for segment in sorted({k.segment for k in self.map.keyframes} - self._placed_segments()):
+            placed = self._placed_segments()
+            if segment in placed:
+                continue
+            placed_keyframes = [k for k in self.map.keyframes if k.segment in placed and not k.culled]
+            point_ids = self.map.points_of(placed_keyframes)
+            tried = [k for k in reversed(self.map.keyframes) if k.segment == segment and not k.culled][:JOIN_KEYFRAMES]
+            with self._timed("loop"):
+                for keyframe in tried:
+                    grid = build_keypoint_grid(keyframe.features.keypoints_px, self.camera.width, self.camera.height)
+                    fix = localise(self.map, keyframe.features, grid, point_ids, self.camera, config,
+                                   config.loop_min_inliers, config.relocalisation_ransac_min_inliers)
+                    if fix is None:
+                        continue
+                    seen = [int(np.isin(fix.point_ids, k.point_ids).sum()) for k in placed_keyframes]
+                    candidate = placed_keyframes[int(np.argmax(seen))]
+                    close_loop(self.map, keyframe, LoopDetection(candidate.id, fix), self.camera, config)
+                    self.loops_closed += 1
+                    logger.info("map segment %d joined to the first keyframe's world at the end: keyframe %d (frame %d) "
+                                "localised against keyframe %d (frame %d), %d inliers", segment, keyframe.id,
+                                keyframe.frame_index, candidate.id, candidate.frame_index, fix.inlier_count)
+                    break
 
     def _placed_segments(self) -> set[int]:
         """The map segments in the first keyframe's world: its own, and those a loop edge ties to a placed one. The
@@ -645,6 +683,7 @@ class OrbFrontend:
             self._worker.join()
             self._worker = None
         self._raise_worker_error()
+        self._join_unplaced_segments()
         if self.config.global_ba and len(self.map.keyframes) > 1:
             with self._timed("global_ba"):
                 global_bundle_adjustment(self.map, self.K, self.config)

@@ -166,27 +166,32 @@ def localise(
     camera: Camera,
     config: OrbFrontendConfig,
     min_inliers: int,
+    min_ransac_inliers: int | None = None,
 ) -> PoseFix | None:
     """Pose of a frame against map points ``point_ids`` without a prior: brute-force matching, PnP-RANSAC,
-    refinement, then a projection search over the same points and a last refinement."""
-    if len(point_ids) < min_inliers or len(features) < min_inliers:
+    refinement, then a projection search over the same points and a last refinement; None unless the pose keeps
+    ``min_inliers``. ``min_ransac_inliers`` (default ``min_inliers``) is the bar before the projection search:
+    brute-force matches of a blurred frame are few, and ORB-SLAM's relocalisation asks 10-15 of PnP-RANSAC and
+    50 of the pose after the projection search."""
+    min_ransac_inliers = min_inliers if min_ransac_inliers is None else min_ransac_inliers
+    if len(point_ids) < min_ransac_inliers or len(features) < min_ransac_inliers:
         return None
     query, train = match_descriptors(features.descriptors, slam_map.points.descriptors[point_ids], config.max_hamming, 0.9)
-    if len(query) < min_inliers:
+    if len(query) < min_ransac_inliers:
         return None
     K = camera.K
     camera_from_world, inliers = solve_pnp_ransac(
         slam_map.points.positions_m[point_ids[train]], features.keypoints_px[query], K, None,
         config.pnp_reprojection_px, max(200, config.pnp_iterations),
     )
-    if camera_from_world is None or inliers.sum() < min_inliers:
+    if camera_from_world is None or inliers.sum() < min_ransac_inliers:
         return None
     fix = refine_with_matches(camera_from_world, features, query[inliers], point_ids[train][inliers], slam_map, K, config)
-    if fix.inlier_count < min_inliers:
+    if fix.inlier_count < min_ransac_inliers:
         return None
     keypoints, ids, _ = match_map_points(slam_map, point_ids, fix.camera_from_world, features, grid, camera, config,
                                          config.refine_radius_px)
-    if len(ids) < min_inliers:
-        return fix
-    refined = refine_with_matches(fix.camera_from_world, features, keypoints, ids, slam_map, K, config)
-    return refined if refined.inlier_count >= fix.inlier_count else fix
+    if len(ids) >= min_ransac_inliers:
+        refined = refine_with_matches(fix.camera_from_world, features, keypoints, ids, slam_map, K, config)
+        fix = refined if refined.inlier_count >= fix.inlier_count else fix
+    return fix if fix.inlier_count >= min_inliers else None
