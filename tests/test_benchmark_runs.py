@@ -126,3 +126,24 @@ def test_tracking_budget_splits_the_cpu_per_frame_and_runs_the_pipeline(syntheti
     assert 0 < run["cores_busy"] <= row["cores"] + 0.5
     row["threaded_runs"] = [run]
     assert format_table(row).splitlines()[0].startswith("| reading ms |")
+
+
+def test_sped_up_sequence_keeps_every_nth_frame_as_the_mean_of_its_exposure(synthetic_sequence_dir, tmp_path):
+    """``benchmarks/sped_up_sequence.py``: every 4th colour frame from the first whose 3-frame window is whole, each
+    the rounded mean of the 3 raw frames around it, under its own name and stamp; depth and ground truth linked."""
+    import cv2
+    import numpy as np
+
+    from benchmarks.sped_up_sequence import write_sped_up
+    from tambridge.io.tum import open_sequence, read_file_list
+
+    folder = tmp_path / "fast"
+    folder.mkdir()
+    assert write_sped_up(synthetic_sequence_dir, folder, 4, 3) == len(range(1, 29, 4))
+    colour = read_file_list(synthetic_sequence_dir / "rgb.txt")
+    assert read_file_list(folder / "rgb.txt") == [colour[i] for i in range(1, 29, 4)]
+    stamp, name = colour[5]
+    window = np.mean([cv2.imread(str(synthetic_sequence_dir / colour[j][1])).astype(np.float32) for j in (4, 5, 6)], axis=0)
+    np.testing.assert_array_equal(cv2.imread(str(folder / name)), np.rint(window).astype(np.uint8))
+    assert (folder / "depth.txt").is_symlink() and (folder / "groundtruth.txt").is_symlink()
+    assert len(open_sequence(folder)) == 7
