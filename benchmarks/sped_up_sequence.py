@@ -1,15 +1,17 @@
-"""A TUM-layout copy of a sequence with the camera sped up and blurred: every ``--stride``-th colour frame, each the
-mean of the ``--exposure-frames`` (odd) recorded colour frames centred on it (a longer exposure, blurred along the
-camera's real motion), written as PNG under the original names and stamps; depth, depth.txt, groundtruth.txt and
-camera.yaml are linked as they are (the reader associates depth with the kept colour stamps). For whole runs of
-``tambridge reconstruct`` on faster motion than a recording has, with its own ground truth:
+"""A TUM-layout copy of a sequence with the camera sped up and blurred: every ``--stride``-th colour frame of
+rgb.txt, each the mean of the ``--exposure-frames`` (odd) recorded colour frames centred on it (a longer exposure,
+blurred along the camera's real motion), written under the original names (encoded by their extension) and stamps;
+depth, depth.txt, groundtruth.txt, accelerometer.txt and the camera file are linked as they are (the reader
+associates depth with the kept colour stamps). For whole runs of ``tambridge reconstruct`` on faster motion than a
+recording has, with its own ground truth:
 
     python benchmarks/sped_up_sequence.py DATA/rgbd_dataset_freiburg1_xyz OUT/rgbd_dataset_freiburg1_xyz_stride6_blur3 --stride 6
     tambridge reconstruct OUT/rgbd_dataset_freiburg1_xyz_stride6_blur3 -o OUT/run
 
 The raw images are averaged, before the reader's undistortion, so the folder keeps the source's camera (name it
 with ``freiburg1`` for the TUM fr1 calibration, as above). ``benchmarks/dense_tracking.py --strides N
---exposure-frames M`` makes the same frames in memory, for tracking alone.
+--exposure-frames M`` makes similar frames in memory for tracking alone (from the frames the reader pairs with
+depth, starting at the first).
 """
 
 from __future__ import annotations
@@ -26,23 +28,34 @@ sys.path.insert(0, str(ROOT))
 
 from tambridge.errors import TambridgeError  # noqa: E402
 from tambridge.files import check_new_or_empty_folder  # noqa: E402
-from tambridge.io.tum import read_file_list  # noqa: E402
+from tambridge.io.tum import check_image_file, read_file_list  # noqa: E402
+
+LINKED = ("depth", "depth.txt", "groundtruth.txt", "accelerometer.txt", "camera.yaml", "camera.yml", "camera.txt")
+"""What the copy takes from the source as it is: the depth, the lists and files the reader and export look for."""
 
 
 def write_sped_up(source: Path, folder: Path, stride: int, exposure_frames: int) -> int:
-    """Write the copy into ``folder`` (new or empty); returns the number of colour frames kept. Frames are kept from
-    the first whose whole exposure window lies in the recording (colour row ``exposure_frames // 2``) on."""
+    """Write the copy into ``folder`` (which must exist); returns the number of colour frames kept. Frames are kept
+    from the first whose whole exposure window lies in the recording (rgb.txt row ``exposure_frames // 2``) on.
+    Every colour image is checked before anything is written (:class:`TambridgeError` naming the file)."""
     colour = read_file_list(source / "rgb.txt")
     half = exposure_frames // 2
     kept = list(range(half, len(colour) - half, stride))
+    if not kept:
+        raise TambridgeError(f"{source / 'rgb.txt'}: lists {len(colour)} colour frames, fewer than one exposure of "
+                             f"{exposure_frames}; give a longer sequence or fewer --exposure-frames")
+    for _, name in colour:
+        check_image_file(source / name, "rgb.txt")
     for index in kept:
-        window = [cv2.imread(str(source / colour[j][1]), cv2.IMREAD_UNCHANGED).astype(np.float32)
-                  for j in range(index - half, index + half + 1)]
+        # Decoded as the reader decodes colour (8-bit, three channels), whatever the file holds.
+        window = [cv2.imread(str(source / colour[j][1]), cv2.IMREAD_COLOR) for j in range(index - half, index + half + 1)]
+        if any(image is None for image in window):
+            raise TambridgeError(f"{source}: a colour image around {colour[index][1]} cannot be decoded; re-extract the sequence")
         target = folder / colour[index][1]
         target.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(target), np.clip(np.rint(np.mean(window, axis=0)), 0, 255).astype(np.uint8))
+        cv2.imwrite(str(target), np.clip(np.rint(np.mean(np.stack(window).astype(np.float32), axis=0)), 0, 255).astype(np.uint8))
     (folder / "rgb.txt").write_text("".join(f"{colour[i][0]:.6f} {colour[i][1]}\n" for i in kept))
-    for name in ("depth", "depth.txt", "groundtruth.txt", "camera.yaml"):
+    for name in LINKED:
         if (source / name).exists():
             (folder / name).symlink_to((source / name).resolve())
     return len(kept)
@@ -63,10 +76,10 @@ def main() -> None:
         parser.error(f"{args.source}: has no rgb.txt; give a TUM-layout sequence folder")
     try:
         check_new_or_empty_folder(args.folder)
+        args.folder.mkdir(parents=True, exist_ok=True)
+        print(f"wrote {write_sped_up(args.source, args.folder, args.stride, args.exposure_frames)} frames to {args.folder}")
     except TambridgeError as error:
         raise SystemExit(f"error: {error}") from None
-    args.folder.mkdir(parents=True, exist_ok=True)
-    print(f"wrote {write_sped_up(args.source, args.folder, args.stride, args.exposure_frames)} frames to {args.folder}")
 
 
 if __name__ == "__main__":

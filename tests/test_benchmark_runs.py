@@ -135,6 +135,7 @@ def test_sped_up_sequence_keeps_every_nth_frame_as_the_mean_of_its_exposure(synt
     import numpy as np
 
     from benchmarks.sped_up_sequence import write_sped_up
+    from tambridge.errors import TambridgeError
     from tambridge.io.tum import open_sequence, read_file_list
 
     folder = tmp_path / "fast"
@@ -145,5 +146,19 @@ def test_sped_up_sequence_keeps_every_nth_frame_as_the_mean_of_its_exposure(synt
     stamp, name = colour[5]
     window = np.mean([cv2.imread(str(synthetic_sequence_dir / colour[j][1])).astype(np.float32) for j in (4, 5, 6)], axis=0)
     np.testing.assert_array_equal(cv2.imread(str(folder / name)), np.rint(window).astype(np.uint8))
-    assert (folder / "depth.txt").is_symlink() and (folder / "groundtruth.txt").is_symlink()
-    assert len(open_sequence(folder)) == 7
+    assert all((folder / name).is_symlink() for name in ("depth", "depth.txt", "groundtruth.txt", "camera.yaml"))
+    sped_up, source = open_sequence(folder), open_sequence(synthetic_sequence_dir)
+    assert len(sped_up) == 7
+    np.testing.assert_array_equal(sped_up[1].depth_m, source[5].depth_m)
+
+    short = tmp_path / "short"
+    short.mkdir()
+    (short / "rgb.txt").write_text("".join(f"{t:.6f} {n}\n" for t, n in colour[:2]))
+    for _, n in colour[:2]:
+        (short / n).parent.mkdir(exist_ok=True)
+        (short / n).symlink_to(synthetic_sequence_dir / n)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(TambridgeError, match="fewer than one exposure of 3"):
+        write_sped_up(short, empty, 4, 3)
+    assert not any(empty.iterdir())

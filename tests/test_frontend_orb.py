@@ -241,7 +241,7 @@ def test_a_blurred_frame_relocalises_through_the_projection_search(sequence, ran
     if ransac_min_inliers == 15:
         assert result.tracked and result.relocalised and result.inlier_count >= 50
         truth = inverse(sequence.ground_truth.world_from_camera[0]) @ sequence.ground_truth.world_from_camera[11]
-        assert np.linalg.norm(result.world_from_camera[:3, 3] - truth[:3, 3]) < 0.05  # blurred keypoints: 3.6 cm here
+        assert np.linalg.norm(result.world_from_camera[:3, 3] - truth[:3, 3]) < 0.05  # blurred keypoints: looser than 3 cm
     else:
         assert not result.tracked and result.is_keyframe  # the first keyframe of segment 1
 

@@ -81,8 +81,8 @@ class OrbFrontendConfig:
     relocalisation_min_inliers: int = setting(50, "least PnP inliers of a relocalised frame", at_least(4))
     relocalisation_ransac_min_inliers: int = setting(
         15, "least PnP-RANSAC inliers of a relocalisation's brute-force matches, before the projection search that "
-        "must reach relocalisation_min_inliers (blurred frames match few points by descriptor alone; ORB-SLAM asks 10)",
-        at_least(4))
+        "must reach relocalisation_min_inliers (a blurred frame matches few points by descriptor alone); also the "
+        "end-of-run join of unjoined map segments", at_least(4))
     # Dense point-to-plane depth term against the last keyframe's depth (tambridge/frontend/orb/dense_depth.py); after
     # a relocalisation, until the next keyframe, against the relocalising keyframe's bundle-adjustment maps.
     # always: with the depth moved to the colour time it lowers RPE on fr1/xyz and 7-Scenes and the error in

@@ -16,8 +16,8 @@ map segment starts, to be joined to the old one by the next loop closure or, at 
 keyframes against the whole map. Relocalisation asks few PnP-RANSAC inliers of the descriptor matches and many of
 the pose after a projection search (ORB-SLAM's two bars), and only places a frame in the current segment or one
 joined to the first keyframe's world. Lost frames between tracked ones end on the path between them
-(:meth:`~tambridge.trajectory.Trajectory.bridged`). ``finish()`` runs global BA and
-re-anchors every frame to its reference keyframe.
+(:meth:`~tambridge.trajectory.Trajectory.bridged`). ``finish()`` tries once more to join unjoined segments, runs
+global BA and re-anchors every frame to its reference keyframe.
 
 Keyframe culling (``keyframe_culling``, ORB-SLAM's KeyFrameCulling after local BA) takes redundant keyframes
 out of the map. Every keyframe has already been announced to the pipeline as a ``KeyframeEvent`` by then (the
@@ -403,11 +403,12 @@ class OrbFrontend:
     def _join_unplaced_segments(self) -> None:
         """At the end of the run, every map segment not in the first keyframe's world tries once more to join it: its
         newest live keyframes (at most ``JOIN_KEYFRAMES``) are localised against every point of the placed segments
-        (:func:`localise`: ``relocalisation_ransac_min_inliers`` of PnP-RANSAC, ``loop_min_inliers`` after the
-        projection search), and the first that localises closes a loop to the placed keyframe that sees most of its
-        inliers. During the run a segment meets the placed map only through the keyframe database's few candidates
-        and consecutive-query checks; the whole map often has the place from another view. A segment that joins is
-        moved into the first keyframe's world (pose graph, then global BA), its frames with it."""
+        with relocalisation's two bars (:func:`localise`), and the first that localises closes a loop to the placed
+        keyframe that sees most of its inliers. During the run a segment meets the placed map only through the
+        keyframe database's few candidates and consecutive-query checks; the whole map often has the place from
+        another view. A segment that joins is moved into the first keyframe's world (pose graph, then global BA),
+        its frames with it. One pass, in segment order: a segment that could only localise against one joined after
+        it stays unjoined."""
         config = self.config
         if not config.loop_closure:
             return
@@ -422,7 +423,7 @@ class OrbFrontend:
                 for keyframe in tried:
                     grid = build_keypoint_grid(keyframe.features.keypoints_px, self.camera.width, self.camera.height)
                     fix = localise(self.map, keyframe.features, grid, point_ids, self.camera, config,
-                                   config.loop_min_inliers, config.relocalisation_ransac_min_inliers)
+                                   config.relocalisation_min_inliers, config.relocalisation_ransac_min_inliers)
                     if fix is None:
                         continue
                     seen = [int(np.isin(fix.point_ids, k.point_ids).sum()) for k in placed_keyframes]
@@ -676,7 +677,8 @@ class OrbFrontend:
             return {k.id: k.world_from_camera.copy() for k in self.map.keyframes}
 
     def finish(self) -> FrontendResult:
-        """Wait for local mapping, run global BA (if configured), return the final trajectories; call once."""
+        """Wait for local mapping, try to join unjoined map segments, run global BA (if configured), return the final
+        trajectories; call once."""
         if self._worker is not None:
             self._jobs.join()
             self._jobs.put(None)

@@ -170,10 +170,10 @@ def localise(
 ) -> PoseFix | None:
     """Pose of a frame against map points ``point_ids`` without a prior: brute-force matching, PnP-RANSAC,
     refinement, then a projection search over the same points and a last refinement; None unless the pose keeps
-    ``min_inliers``. ``min_ransac_inliers`` (default ``min_inliers``) is the bar before the projection search:
-    brute-force matches of a blurred frame are few, and ORB-SLAM's relocalisation asks 10-15 of PnP-RANSAC and
-    50 of the pose after the projection search."""
-    min_ransac_inliers = min_inliers if min_ransac_inliers is None else min_ransac_inliers
+    ``min_inliers``. ``min_ransac_inliers`` (default, and at most, ``min_inliers``) is the bar before the
+    projection search: a blurred frame matches few points by descriptor alone, and a pose from those few finds the
+    rest by projection (ORB-SLAM's relocalisation has the same two bars)."""
+    min_ransac_inliers = min_inliers if min_ransac_inliers is None else min(min_ransac_inliers, min_inliers)
     if len(point_ids) < min_ransac_inliers or len(features) < min_ransac_inliers:
         return None
     query, train = match_descriptors(features.descriptors, slam_map.points.descriptors[point_ids], config.max_hamming, 0.9)
