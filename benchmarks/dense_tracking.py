@@ -38,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.machine import describe_machine  # noqa: E402
+from benchmarks.sped_up_sequence import mean_exposure  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
 SHARED = ROOT.parent / "shared" / "data"
@@ -216,8 +217,7 @@ def longer_exposure(frames: list, index: int, count: int):
         return frames[index]
     half = count // 2
     window = frames[max(0, index - half) : index + half + 1]
-    rgb = np.mean([frame.rgb.astype(np.float32) for frame in window], axis=0)
-    return dataclasses.replace(frames[index], rgb=np.clip(np.rint(rgb), 0, 255).astype(np.uint8))
+    return dataclasses.replace(frames[index], rgb=mean_exposure([frame.rgb for frame in window]))
 
 
 def format_table(rows: list[dict]) -> str:

@@ -34,6 +34,11 @@ LINKED = ("depth", "depth.txt", "groundtruth.txt", "accelerometer.txt", "camera.
 """What the copy takes from the source as it is: the depth, the lists and files the reader and export look for."""
 
 
+def mean_exposure(images: list[np.ndarray]) -> np.ndarray:
+    """The mean of same-sized 8-bit images, rounded back to uint8: one frame of a longer exposure."""
+    return np.clip(np.rint(np.mean(np.stack(images).astype(np.float32), axis=0)), 0, 255).astype(np.uint8)
+
+
 def write_sped_up(source: Path, folder: Path, stride: int, exposure_frames: int) -> int:
     """Write the copy into ``folder`` (which must exist); returns the number of colour frames kept. Frames are kept
     from the first whose whole exposure window lies in the recording (rgb.txt row ``exposure_frames // 2``) on.
@@ -53,7 +58,7 @@ def write_sped_up(source: Path, folder: Path, stride: int, exposure_frames: int)
             raise TambridgeError(f"{source}: a colour image around {colour[index][1]} cannot be decoded; re-extract the sequence")
         target = folder / colour[index][1]
         target.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(target), np.clip(np.rint(np.mean(np.stack(window).astype(np.float32), axis=0)), 0, 255).astype(np.uint8))
+        cv2.imwrite(str(target), mean_exposure(window))
     (folder / "rgb.txt").write_text("".join(f"{colour[i][0]:.6f} {colour[i][1]}\n" for i in kept))
     for name in LINKED:
         if (source / name).exists():

@@ -190,6 +190,18 @@ def test_relocalising_into_the_first_segment_takes_tracking_back_into_it(sequenc
     np.testing.assert_allclose(final.keyframe_poses[keyframe_18.id], results[18].world_from_camera, atol=1e-9)
 
 
+def _shown(frame: Frame, index: int, mirrored: bool = False, blank: bool = False) -> Frame:
+    """``frame`` shown again as frame ``index`` (colour and depth stamped ``index / 30`` s), mirrored left to right
+    (its colour and depth: a scene the map does not have) or blank (black, no depth: a covered sensor)."""
+    rgb, depth_m = frame.rgb, frame.depth_m
+    if mirrored:
+        rgb, depth_m = np.ascontiguousarray(rgb[:, ::-1]), np.ascontiguousarray(depth_m[:, ::-1])
+    if blank:
+        rgb, depth_m = np.zeros_like(rgb), np.zeros_like(depth_m)
+    return dataclasses.replace(frame, index=index, timestamp_s=index / 30.0, depth_timestamp_s=index / 30.0,
+                               rgb=rgb, depth_m=depth_m)
+
+
 def test_relocalisation_never_moves_tracking_into_an_unjoined_segment(sequence, caplog):
     """Frames 0-14, three blank frames, then frames 18-21 mirrored left to right (a scene the map does not have,
     with its mirrored depth): they start map segment 1 at the predicted pose and are tracked in it. Frames 10-12
@@ -197,22 +209,12 @@ def test_relocalisation_never_moves_tracking_into_an_unjoined_segment(sequence, 
     joined to the first keyframe's world: relocalising there would put tracking back into the guessed pose, so
     they are lost, and frame 12 after them is tracked in segment 0."""
     frames = [sequence[i] for i in range(len(sequence))]
-
-    def shown(view: int, index: int, mirrored: bool = False, blank: bool = False) -> Frame:
-        rgb, depth_m = frames[view].rgb, frames[view].depth_m
-        if mirrored:
-            rgb, depth_m = np.ascontiguousarray(rgb[:, ::-1]), np.ascontiguousarray(depth_m[:, ::-1])
-        if blank:
-            rgb, depth_m = np.zeros_like(rgb), np.zeros_like(depth_m)
-        return dataclasses.replace(frames[view], index=index, timestamp_s=index / 30.0, depth_timestamp_s=index / 30.0,
-                                   rgb=rgb, depth_m=depth_m)
-
     plan = ([(view, {}) for view in range(15)] + [(view, dict(blank=True)) for view in (15, 16, 17)]
             + [(view, dict(mirrored=True)) for view in (18, 19, 20, 21)] + [(10, {}), (11, {}), (12, {})]
             + [(20, dict(mirrored=True)), (21, dict(mirrored=True)), (12, {})])
     frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False))
     with caplog.at_level(logging.INFO, logger="tambridge.frontend"):
-        results = [frontend.track(shown(view, index, **kind)) for index, (view, kind) in enumerate(plan)]
+        results = [frontend.track(_shown(frames[view], index, **kind)) for index, (view, kind) in enumerate(plan)]
 
     assert {k.frame_index: k.segment for k in frontend.map.keyframes}[18] == 1 and not frontend.map.loop_edges
     assert all(r.tracked for r in results[19:22]) and (results[22].tracked, results[22].relocalised) == (True, True)
@@ -254,18 +256,10 @@ def test_a_segment_no_loop_joined_joins_the_map_at_the_end(sequence, caplog):
     0's points and closes a loop there: segment 1 is moved into the first keyframe's world, and its frames end
     within 3 cm of the truth."""
     frames = [sequence[i] for i in range(len(sequence))]
-
-    def shown(view: int, index: int, blank: bool = False) -> Frame:
-        rgb, depth_m = frames[view].rgb, frames[view].depth_m
-        if blank:
-            rgb, depth_m = np.zeros_like(rgb), np.zeros_like(depth_m)
-        return dataclasses.replace(frames[view], index=index, timestamp_s=index / 30.0, depth_timestamp_s=index / 30.0,
-                                   rgb=rgb, depth_m=depth_m)
-
     plan = [(view, False) for view in range(15)] + [(view, True) for view in (15, 16, 17)] + [(view, False) for view in range(23, 11, -1)]
     frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False))
     for index, (view, blank) in enumerate(plan):
-        frontend.track(shown(view, index, blank))
+        frontend.track(_shown(frames[view], index, blank=blank))
     segment_of_frame = {k.frame_index: k.segment for k in frontend.map.keyframes}
     assert segment_of_frame[18] == 1 and {segment_of_frame[i] for i in segment_of_frame if i > 18} == {1}
     assert frontend.loops_closed == 0

@@ -94,9 +94,9 @@ class FrontendResult:
     ``trajectory`` has every frame given to ``track`` (non-keyframes re-anchored to their reference keyframe
     after corrections; a frame not localised between two localised ones on the geodesic between them,
     :meth:`~tambridge.trajectory.Trajectory.bridged`, where ORB also counts the first keyframe of a segment
-    joined to the first keyframe's world as localised), ``tracked`` (N,) bool says which were localised; ``keyframe_trajectory`` the keyframes;
-    ``keyframe_poses`` keyframe id -> 4x4; ``keyframe_frame_indices`` keyframe id -> frame index. These three list
-    every keyframe ever announced by a :class:`KeyframeEvent`, culled ones included (``keyframes_culled`` of
+    joined to the first keyframe's world as localised), ``tracked`` (N,) bool says which were localised;
+    ``keyframe_trajectory`` the keyframes; ``keyframe_poses`` keyframe id -> 4x4; ``keyframe_frame_indices``
+    keyframe id -> frame index. These three list every keyframe ever announced by a :class:`KeyframeEvent`, culled ones included (``keyframes_culled`` of
     them, ORB only): a culled keyframe's pose is its parent keyframe's final pose times the relative pose it had
     when it was culled, so Gaussians anchored to it move with the map. ``tracked_by_depth`` (N,) bool marks the
     tracked frames placed by their depth alone (ORB only, ``depth_only_tracking``; None: none were), whose colour
