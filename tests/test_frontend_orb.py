@@ -2,6 +2,7 @@
 
 import dataclasses
 import logging
+import threading
 import time
 
 import cv2
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from tambridge.evaluation.trajectory import ate_rmse_m, evaluate_trajectory
+from tambridge.frontend.orb import frontend as frontend_module
 from tambridge.frontend.orb.frontend import OrbFrontend
 from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, scaled_for_image
 from tambridge.geometry import interpolate_pose, inverse, look_at
@@ -129,6 +131,57 @@ def test_frames_without_colour_are_tracked_by_their_depth(sequence, depth_only):
         assert np.max(errors[12:14]) < 0.02 and np.sqrt(np.mean(errors ** 2)) < 0.02
 
 
+def test_no_depth_only_tracking_right_after_a_relocalisation(sequence):
+    """Frames 0-24, then frame 3 shown again (a kidnapping: it relocalises, which clears the velocity), then frame 4
+    with its colour black and its depth kept. Depth-only tracking would start from the relocalised pose itself, a
+    prior that is no motion; a moving camera can be outside the depth term's basin there (on fr1/xyz's desk it slid
+    12 cm the wrong way), so the frame is lost rather than tracked by its depth. Frame 5 after it is tracked."""
+    frames = [sequence[i] for i in range(len(sequence))]
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False))
+    assert frontend.config.depth_only_tracking
+    for frame in frames[:25]:
+        frontend.track(frame)
+    results = [frontend.track(_shown(frames[3], 25)), frontend.track(_shown(frames[4], 26, black=True)),
+               frontend.track(_shown(frames[5], 27))]
+    assert [(r.tracked, r.relocalised) for r in results[:2]] == [(True, True), (False, False)] and results[2].tracked
+    assert frontend.finish().frames_tracked_by_depth == 0
+
+
+def test_a_frame_the_map_cannot_place_waits_for_the_mapping_thread(sequence, monkeypatch):
+    """With the mapping thread, a frame that fails against the local map is tried again once the thread has mapped
+    the keyframes it holds (their fused points and local BA are what an inline run tracks against), before
+    relocalisation. The thread is held on keyframe 15's local BA; the blank frame after it is tried twice, the
+    second time with no keyframe left in the thread."""
+    frames = [sequence[i] for i in range(len(sequence))]
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=True))
+    for frame in frames[:15]:
+        frontend.track(frame)
+    frontend._jobs.join()  # nothing in the thread before it is held
+    released = threading.Event()
+    local_bundle_adjustment = frontend_module.local_bundle_adjustment
+
+    def held(*args, **kwargs):
+        released.wait(timeout=30)
+        return local_bundle_adjustment(*args, **kwargs)
+
+    monkeypatch.setattr(frontend_module, "local_bundle_adjustment", held)
+    frontend.request_keyframe()
+    assert frontend.track(frames[15]).is_keyframe
+    keyframes_in_thread = []
+    track_local_map = frontend._track_local_map
+
+    def counted(*args):
+        keyframes_in_thread.append(frontend._jobs.unfinished_tasks)
+        return track_local_map(*args)
+
+    monkeypatch.setattr(frontend, "_track_local_map", counted)
+    threading.Timer(0.5, released.set).start()
+    result = frontend.track(_shown(frames[16], 16, blank=True))
+    assert not result.tracked
+    assert keyframes_in_thread == [1, 0]
+    assert frontend.finish().frames_lost == 1
+
+
 def test_a_kidnapped_camera_is_relocalised_and_tracked_on(sequence):
     """A frame from far back in the loop after frame 24: the local map misses it, bag-of-words relocalisation
     finds it, the local map is tracked around it with the dense depth term (the default, which crashed here when
@@ -169,7 +222,7 @@ def test_relocalising_into_the_first_segment_takes_tracking_back_into_it(sequenc
     frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False))
     with caplog.at_level(logging.INFO, logger="tambridge.frontend"):
         results = [frontend.track(frame) for frame in frames[:15] + blank + [unknown] + again]
-    final = frontend.finish()
+        final = frontend.finish()
 
     assert [r.tracked for r in results[15:19]] == [False] * 4 and (results[19].tracked, results[19].relocalised) == (True, True)
     segment_of_frame = {k.frame_index: k.segment for k in frontend.map.keyframes}
@@ -185,17 +238,24 @@ def test_relocalising_into_the_first_segment_takes_tracking_back_into_it(sequenc
     for row in range(15, 19):
         fraction = (times[row] - times[14]) / (times[19] - times[14])
         np.testing.assert_allclose(poses[row], interpolate_pose(poses[14], poses[19], fraction), atol=1e-9)
-    # The keyframe list keeps segment 1's first keyframe where it was made (nothing ties it to the map).
-    keyframe_18 = next(k for k in frontend.map.keyframes if k.frame_index == 18)
-    np.testing.assert_allclose(final.keyframe_poses[keyframe_18.id], results[18].world_from_camera, atol=1e-9)
+    # Nothing joined segment 1: its keyframe is moved to between the frames around it (here a replay, not the
+    # continuous motion that placement assumes: test_a_segment_nothing_joined_is_placed_between_the_frames_around_it).
+    assert any("map segment 1 (frames 18-18), which no loop joined, placed" in r.getMessage() for r in caplog.records)
 
 
-def _shown(frame: Frame, index: int, mirrored: bool = False, blank: bool = False) -> Frame:
+def _shown(frame: Frame, index: int, mirrored: bool = False, blank: bool = False, inverted: bool = False,
+           black: bool = False) -> Frame:
     """``frame`` shown again as frame ``index`` (colour and depth stamped ``index / 30`` s), mirrored left to right
-    (its colour and depth: a scene the map does not have) or blank (black, no depth: a covered sensor)."""
+    (its colour and depth: a scene the map does not have), blank (black, no depth: a covered sensor), black with its
+    depth (a covered colour lens) or with its colours inverted (the same place, with descriptors that match none of
+    the map's)."""
     rgb, depth_m = frame.rgb, frame.depth_m
+    if black:
+        rgb = np.zeros_like(rgb)
     if mirrored:
         rgb, depth_m = np.ascontiguousarray(rgb[:, ::-1]), np.ascontiguousarray(depth_m[:, ::-1])
+    if inverted:
+        rgb = 255 - rgb
     if blank:
         rgb, depth_m = np.zeros_like(rgb), np.zeros_like(depth_m)
     return dataclasses.replace(frame, index=index, timestamp_s=index / 30.0, depth_timestamp_s=index / 30.0,
@@ -222,6 +282,33 @@ def test_relocalisation_never_moves_tracking_into_an_unjoined_segment(sequence, 
     messages = [record.getMessage() for record in caplog.records]
     assert any("back in map segment 0" in m for m in messages)
     assert not any("back in map segment 1" in m for m in messages)
+
+
+def test_a_segment_nothing_joined_is_placed_between_the_frames_around_it(sequence, caplog):
+    """Frames 0-14, three blank frames, then frames 18-21 with their colours inverted (with their depth): ORB's
+    descriptors of an inverted image match nothing in the map, so frame 18 starts map segment 1 at the prediction
+    across the blank frames, about 20 cm from its truth, and the inverted frames track each other in it. Frames
+    22-29 come back as recorded and tracking returns to segment 0; nothing joins segment 1 (its descriptors match no
+    placed point). At the end the segment is moved rigidly to where the frames around it put it, mostly by the
+    placed frames right after it: every frame of it, and the lost frames, end within 6 cm of the truth."""
+    frames = [sequence[i] for i in range(len(sequence))]
+    plan = ([(view, {}) for view in range(15)] + [(view, dict(blank=True)) for view in (15, 16, 17)]
+            + [(view, dict(inverted=True)) for view in range(18, 22)] + [(view, {}) for view in range(22, 30)])
+    frontend = OrbFrontend(sequence.camera, OrbFrontendConfig(**SMALL_IMAGE, mapping_thread=False))
+    results = [frontend.track(_shown(frames[view], index, **kind)) for index, (view, kind) in enumerate(plan)]
+    world_from_first = inverse(sequence.ground_truth.world_from_camera[0])
+    truths = [(world_from_first @ sequence.ground_truth.world_from_camera[view])[:3, 3] for view, _ in plan]
+    assert {k.frame_index: k.segment for k in frontend.map.keyframes}[18] == 1
+    assert np.linalg.norm(results[18].world_from_camera[:3, 3] - truths[18]) > 0.15
+    with caplog.at_level(logging.INFO, logger="tambridge.frontend"):
+        final = frontend.finish()
+
+    assert not frontend.map.loop_edges and 1 not in frontend._placed_segments()
+    assert any("map segment 1 (frames 18-" in r.getMessage() and "placed between" in r.getMessage() for r in caplog.records)
+    errors_m = np.linalg.norm(final.trajectory.world_from_camera[:, :3, 3] - np.array(truths), axis=1)
+    assert np.all(errors_m[15:] < 0.06), np.round(errors_m, 3)
+    keyframe_18 = next(k for k in frontend.map.keyframes if k.frame_index == 18)
+    assert np.linalg.norm(final.keyframe_poses[keyframe_18.id][:3, 3] - truths[18]) < 0.06
 
 
 @pytest.mark.parametrize("ransac_min_inliers", [15, 50], ids=["two-stage", "one-stage"])

@@ -11,13 +11,14 @@ Tracking a frame decides whether it becomes a keyframe
 descriptor), runs local BA, and looks for a loop (bag of words, candidates consistent over consecutive
 keyframes, PnP verification, pose graph, point fusion). A frame the local map cannot place tries
 relocalisation against the keyframes, then its depth alone against the dense term's keyframe surface
-(``depth_only_tracking``); failing both it is lost, reported (warning) and, after a few failures, a new
-map segment starts, to be joined to the old one by the next loop closure or, at the end, by localising its newest
-keyframes against the whole map. Relocalisation asks few PnP-RANSAC inliers of the descriptor matches and many of
+(``depth_only_tracking``, from a measured velocity only); failing both it is lost, reported (warning) and, after a
+few failures, a new map segment starts, to be joined to the old one by the next loop closure or, at the end, by
+localising its newest keyframes against the whole map; a segment still unjoined then is placed between the frames
+around it. Relocalisation asks few PnP-RANSAC inliers of the descriptor matches and many of
 the pose after a projection search (ORB-SLAM's two bars), and only places a frame in the current segment or one
 joined to the first keyframe's world. Lost frames between tracked ones end on the path between them
 (:meth:`~tambridge.trajectory.Trajectory.bridged`). ``finish()`` tries once more to join unjoined segments, runs
-global BA and re-anchors every frame to its reference keyframe.
+global BA, places the segments still unjoined and re-anchors every frame to its reference keyframe.
 
 Keyframe culling (``keyframe_culling``, ORB-SLAM's KeyFrameCulling after local BA) takes redundant keyframes
 out of the map. Every keyframe has already been announced to the pipeline as a ``KeyframeEvent`` by then (the
@@ -33,8 +34,9 @@ instead, but frames here come as fast as tracking takes them: under CPU load, sk
 keyframes and lost tracking). One lock guards the map:
 tracking holds it while it reads the local map, the mapping thread while it edits the map or reads BA inputs,
 not while it solves. Frame poses are kept relative to their reference keyframe, so corrections made in the
-background carry over to tracking. Without the thread everything runs inside ``track`` and results are
-deterministic. ``timings_s`` sums wall time per stage over both threads.
+background carry over to tracking. A frame that fails against the local map while the thread still holds
+keyframes waits for it and tries again, before relocalisation. Without the thread everything runs inside ``track``
+and results are deterministic. ``timings_s`` sums wall time per stage over both threads.
 """
 
 from __future__ import annotations
@@ -70,7 +72,7 @@ from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 from tambridge.frontend.contract import FrontendResult, KeyframeEvent, MapPointObservations, TrackResult, empty_timings
 from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, for_camera
 from tambridge.frontend.orb.vocabulary import KeyframeDatabase, Vocabulary
-from tambridge.geometry import inverse
+from tambridge.geometry import interpolate_pose, inverse, poses_along
 from tambridge.io.tum import Frame
 from tambridge.trajectory import Trajectory
 
@@ -187,15 +189,21 @@ class OrbFrontend:
         if self._reference is None:
             started = self._start_segment(frame, features)
             return started if started is not None else self._lost(frame, features, "no map to track against")
-        if self._reference.culled:
-            # Culled by the mapping thread since the last frame: its parent stands in for it.
-            self._reference = self.map.keyframes[self._reference.parent]
+        self._follow_culled_reference()
         camera_from_world_last = self._camera_from_world_last()
         predicted = self._motion @ camera_from_world_last
         frame, features = self._depth_at_colour_time(frame, features)
         grid = build_keypoint_grid(features.keypoints_px, self.camera.width, self.camera.height)
         radius_scale = 2.0 if self._lost_streak else 1.0
         fix, in_view, dense = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m)
+        if (fix is None or fix.inlier_count < self.config.min_inliers) and self._jobs.unfinished_tasks:
+            # The mapping thread still holds keyframes: the local map without their point fusion and local BA is not
+            # the one an inline run tracks against. Where that map fails, wait for the thread and try its map again.
+            self._wait_for_mapping()
+            self._follow_culled_reference()
+            camera_from_world_last = self._camera_from_world_last()
+            predicted = self._motion @ camera_from_world_last
+            fix, in_view, dense = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m)
         relocalised = False
         if fix is None or fix.inlier_count < self.config.min_inliers:
             relocalisation = self._relocalise(features, grid, frame.depth_m)
@@ -253,6 +261,11 @@ class OrbFrontend:
             relocalised=relocalised,
             keyframe=keyframe_event,
         )
+
+    def _follow_culled_reference(self) -> None:
+        """A reference keyframe the mapping thread culled since the last frame is replaced by its parent."""
+        if self._reference.culled:
+            self._reference = self.map.keyframes[self._reference.parent]
 
     def _depth_at_colour_time(self, frame: Frame, features: FrameFeatures) -> tuple[Frame, FrameFeatures]:
         """The frame and its features with the depth moved to the colour time (``depth_time_compensation``) by the
@@ -312,13 +325,17 @@ class OrbFrontend:
     def _track_by_depth(self, frame: Frame, predicted: np.ndarray, camera_from_world_last: np.ndarray) -> TrackResult | None:
         """The frame tracked by the depth term alone (:func:`align_depth` from the motion prior ``predicted``) against
         the keyframe surface (``_dense_reference``), where ORB could not place it and ``depth_only_tracking`` allows:
-        right after a tracked frame (the prior is a tracked pose's), and only where the pose found keeps
+        right after a tracked frame with a measured velocity (the prior is a tracked pose moved by a tracked
+        motion; not after a relocalisation, which clears the velocity), and only where the pose found keeps
         ``depth_only_min_share`` of the frame's depth on the surface and the surface holds every motion
         (``depth_only_min_conditioning``); else None. Such a frame brings no map points, so it never becomes a
         keyframe."""
         config = self.config
-        # No keyframe depth is kept with dense_depth never: the reference is None then.
-        if not config.depth_only_tracking or self._dense_reference is None or self._lost_streak:
+        # No keyframe depth is kept with dense_depth never: the reference is None then. A motion prior cleared by a
+        # relocalisation is the last pose itself: for a moving camera that can lie outside the term's basin, where a
+        # surface such as a desk lets it slide into a wrong pose that still fits.
+        if (not config.depth_only_tracking or self._dense_reference is None or self._lost_streak
+                or np.array_equal(self._motion, np.eye(4))):
             return None
         term = self._dense_term_of(frame.depth_m)
         if len(term.samples_camera_m) == 0:
@@ -434,6 +451,55 @@ class OrbFrontend:
                                 "localised against keyframe %d (frame %d), %d inliers", segment, keyframe.id,
                                 keyframe.frame_index, candidate.id, candidate.frame_index, fix.inlier_count)
                     break
+
+    def _frame_poses(self) -> np.ndarray:
+        """(N, 4, 4) world_from_camera of every frame so far, from its reference keyframe's pose now."""
+        keyframes = self.map.keyframes
+        poses = [r.reference_from_camera if r.reference_keyframe < 0
+                 else keyframes[r.reference_keyframe].world_from_camera @ r.reference_from_camera
+                 for r in self._records]
+        return np.stack(poses) if poses else np.zeros((0, 4, 4))
+
+    def _place_unjoined_segments(self) -> None:
+        """Move each map segment that nothing joined to the first keyframe's world, and that tracking left for frames
+        of that world, to where the frames around it put it. Its start is the constant-velocity guess across the
+        loss before it; the placed frames after it give a second guess of where its last frame is, continued back
+        from their own motion. The segment moves rigidly (its keyframes, their points and frames, keeping the
+        motion tracked inside it) to the mean of the two, each weighted by how close in time its guess was
+        (the guess over the shorter gap is the better one). A segment with no two placed frames after it keeps its
+        start's guess."""
+        placed = self._placed_segments()
+        keyframes = self.map.keyframes
+        records = self._records
+        first_keyframes: dict[int, int] = {}
+        for keyframe in keyframes:
+            first_keyframes.setdefault(keyframe.segment, keyframe.frame_index)
+        segment_starts = set(first_keyframes.values())
+        segment_of = np.array([keyframes[r.reference_keyframe].segment if r.reference_keyframe >= 0 else -1
+                               for r in records])
+        localised = np.array([r.tracked or r.frame_index in segment_starts for r in records], bool)
+        times_s = np.array([r.timestamp_s for r in records])
+        anchors = np.flatnonzero(localised & np.isin(segment_of, sorted(placed)))
+        for segment in sorted(set(segment_of[localised]) - placed - {-1}):
+            inside = np.flatnonzero(localised & (segment_of == segment))
+            first, last = inside[0], inside[-1]
+            before, after = anchors[anchors < first][-2:], anchors[anchors > last][:2]
+            if len(before) < 2 or len(after) < 2:
+                continue
+            poses = self._frame_poses()
+            from_before = poses_along(times_s[before], poses[before], times_s[[first]])[0] @ inverse(poses[first])
+            from_after = poses_along(times_s[after], poses[after], times_s[[last]])[0] @ inverse(poses[last])
+            gap_before_s, gap_after_s = times_s[first] - times_s[before[-1]], times_s[after[0]] - times_s[last]
+            world_from_segment = interpolate_pose(from_before, from_after, gap_before_s / (gap_before_s + gap_after_s))
+            keyframe_poses_before = np.stack([k.world_from_camera for k in keyframes])
+            for keyframe in keyframes:
+                if keyframe.segment == segment:
+                    keyframe.world_from_camera = world_from_segment @ keyframe.world_from_camera
+            self.map.move_points_with_keyframes(keyframe_poses_before)
+            moved_m = np.linalg.norm((world_from_segment @ poses[first])[:3, 3] - poses[first][:3, 3])
+            logger.info("map segment %d (frames %d-%d), which no loop joined, placed between the frames around it: "
+                        "its first frame moved %.3f m", segment, records[first].frame_index, records[last].frame_index,
+                        moved_m)
 
     def _placed_segments(self) -> set[int]:
         """The map segments in the first keyframe's world: its own, and those a loop edge ties to a placed one. The
@@ -677,8 +743,8 @@ class OrbFrontend:
             return {k.id: k.world_from_camera.copy() for k in self.map.keyframes}
 
     def finish(self) -> FrontendResult:
-        """Wait for local mapping, try to join unjoined map segments, run global BA (if configured), return the final
-        trajectories; call once."""
+        """Wait for local mapping, try to join unjoined map segments, run global BA (if configured), place the segments
+        still unjoined, return the final trajectories; call once."""
         if self._worker is not None:
             self._jobs.join()
             self._jobs.put(None)
@@ -689,14 +755,9 @@ class OrbFrontend:
         if self.config.global_ba and len(self.map.keyframes) > 1:
             with self._timed("global_ba"):
                 global_bundle_adjustment(self.map, self.K, self.config)
-        poses = []
-        for record in self._records:
-            if record.reference_keyframe < 0:
-                poses.append(record.reference_from_camera)
-            else:
-                poses.append(self.map.keyframes[record.reference_keyframe].world_from_camera @ record.reference_from_camera)
+        self._place_unjoined_segments()
         keyframes = self.map.keyframes
-        trajectory = Trajectory(np.array([r.timestamp_s for r in self._records]), np.stack(poses) if poses else np.zeros((0, 4, 4)))
+        trajectory = Trajectory(np.array([r.timestamp_s for r in self._records]), self._frame_poses())
         # A lost frame's pose was predicted from the frames before it alone; the frames after it place it better. The
         # first keyframe of a segment that no loop joined has such a prediction too; a joined one has its pose from the
         # map. (Frames tracked in an unjoined segment stay: their motion is measured, their offset is that guess.)
