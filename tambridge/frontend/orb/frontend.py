@@ -189,23 +189,20 @@ class OrbFrontend:
         if self._reference is None:
             started = self._start_segment(frame, features)
             return started if started is not None else self._lost(frame, features, "no map to track against")
-        self._follow_culled_reference()
-        camera_from_world_last = self._camera_from_world_last()
-        predicted = self._motion @ camera_from_world_last
+        camera_from_world_last, predicted = self._prior()
         frame, features = self._depth_at_colour_time(frame, features)
         grid = build_keypoint_grid(features.keypoints_px, self.camera.width, self.camera.height)
         radius_scale = 2.0 if self._lost_streak else 1.0
         fix, in_view, dense = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m)
-        if (fix is None or fix.inlier_count < self.config.min_inliers) and self._jobs.unfinished_tasks:
+        if not self._placed_by(fix) and self._jobs.unfinished_tasks and len(features) >= self.config.min_inliers // 2:
             # The mapping thread still holds keyframes: the local map without their point fusion and local BA is not
             # the one an inline run tracks against. Where that map fails, wait for the thread and try its map again.
             self._wait_for_mapping()
-            self._follow_culled_reference()
-            camera_from_world_last = self._camera_from_world_last()
-            predicted = self._motion @ camera_from_world_last
+            self._raise_worker_error()
+            camera_from_world_last, predicted = self._prior()
             fix, in_view, dense = self._track_local_map(features, grid, predicted, radius_scale, frame.depth_m)
         relocalised = False
-        if fix is None or fix.inlier_count < self.config.min_inliers:
+        if not self._placed_by(fix):
             relocalisation = self._relocalise(features, grid, frame.depth_m)
             if relocalisation is None:
                 by_depth = self._track_by_depth(frame, predicted, camera_from_world_last)
@@ -262,10 +259,24 @@ class OrbFrontend:
             keyframe=keyframe_event,
         )
 
-    def _follow_culled_reference(self) -> None:
-        """A reference keyframe the mapping thread culled since the last frame is replaced by its parent."""
+    def _prior(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(camera_from_world_last, predicted)``: the last frame's pose and the constant-velocity prediction from it,
+        with the map as it is now. A reference keyframe the mapping thread culled since the last frame is first
+        replaced by its parent."""
         if self._reference.culled:
             self._reference = self.map.keyframes[self._reference.parent]
+        camera_from_world_last = self._camera_from_world_last()
+        return camera_from_world_last, self._motion @ camera_from_world_last
+
+    def _placed_by(self, fix: PoseFix | None) -> bool:
+        """The local map's fix has the inliers of a tracked frame (``min_inliers``)."""
+        return fix is not None and fix.inlier_count >= self.config.min_inliers
+
+    @property
+    def _velocity_measured(self) -> bool:
+        """The constant-velocity prior is a measured motion, not the identity a relocalisation or a new segment
+        leaves."""
+        return not np.array_equal(self._motion, np.eye(4))
 
     def _depth_at_colour_time(self, frame: Frame, features: FrameFeatures) -> tuple[Frame, FrameFeatures]:
         """The frame and its features with the depth moved to the colour time (``depth_time_compensation``) by the
@@ -273,7 +284,7 @@ class OrbFrontend:
         its own or the prior is still."""
         delay_s, interval_s = frame.depth_delay_s, frame.timestamp_s - self._last.timestamp_s
         if (not self.config.depth_time_compensation or delay_s == 0.0 or not interval_s > 0.0
-                or np.array_equal(self._motion, np.eye(4))):
+                or not self._velocity_measured):
             return frame, features
         with self._timed("features"):
             colour_from_depth = colour_from_depth_motion(self._motion, interval_s, delay_s)
@@ -335,7 +346,7 @@ class OrbFrontend:
         # relocalisation is the last pose itself: for a moving camera that can lie outside the term's basin, where a
         # surface such as a desk lets it slide into a wrong pose that still fits.
         if (not config.depth_only_tracking or self._dense_reference is None or self._lost_streak
-                or np.array_equal(self._motion, np.eye(4))):
+                or not self._velocity_measured):
             return None
         term = self._dense_term_of(frame.depth_m)
         if len(term.samples_camera_m) == 0:
@@ -466,8 +477,8 @@ class OrbFrontend:
         loss before it; the placed frames after it give a second guess of where its last frame is, continued back
         from their own motion. The segment moves rigidly (its keyframes, their points and frames, keeping the
         motion tracked inside it) to the mean of the two, each weighted by how close in time its guess was
-        (the guess over the shorter gap is the better one). A segment with no two placed frames after it keeps its
-        start's guess."""
+        (the guess over the shorter gap is the better one). A segment without two placed frames before it and two
+        after it keeps its start's guess."""
         placed = self._placed_segments()
         keyframes = self.map.keyframes
         records = self._records
@@ -480,13 +491,13 @@ class OrbFrontend:
         localised = np.array([r.tracked or r.frame_index in segment_starts for r in records], bool)
         times_s = np.array([r.timestamp_s for r in records])
         anchors = np.flatnonzero(localised & np.isin(segment_of, sorted(placed)))
+        poses = self._frame_poses()  # the placed frames' poses stay; each segment's own are read before it moves
         for segment in sorted(set(segment_of[localised]) - placed - {-1}):
             inside = np.flatnonzero(localised & (segment_of == segment))
             first, last = inside[0], inside[-1]
             before, after = anchors[anchors < first][-2:], anchors[anchors > last][:2]
             if len(before) < 2 or len(after) < 2:
                 continue
-            poses = self._frame_poses()
             from_before = poses_along(times_s[before], poses[before], times_s[[first]])[0] @ inverse(poses[first])
             from_after = poses_along(times_s[after], poses[after], times_s[[last]])[0] @ inverse(poses[last])
             gap_before_s, gap_after_s = times_s[first] - times_s[before[-1]], times_s[after[0]] - times_s[last]
@@ -759,8 +770,9 @@ class OrbFrontend:
         keyframes = self.map.keyframes
         trajectory = Trajectory(np.array([r.timestamp_s for r in self._records]), self._frame_poses())
         # A lost frame's pose was predicted from the frames before it alone; the frames after it place it better. The
-        # first keyframe of a segment that no loop joined has such a prediction too; a joined one has its pose from the
-        # map. (Frames tracked in an unjoined segment stay: their motion is measured, their offset is that guess.)
+        # first keyframe of a segment that no loop joined was such a prediction too (its keyframe pose keeps the
+        # segment's placement); a joined one has its pose from the map. Frames tracked in an unjoined segment move
+        # with it (_place_unjoined_segments).
         placed = self._placed_segments()
         placed_keyframe_frames = {k.frame_index for k in keyframes if k.segment in placed}
         trajectory = trajectory.bridged(np.array([r.tracked or r.frame_index in placed_keyframe_frames
