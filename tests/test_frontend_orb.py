@@ -287,7 +287,7 @@ def test_relocalisation_never_moves_tracking_into_an_unjoined_segment(sequence, 
 def test_a_segment_nothing_joined_is_placed_between_the_frames_around_it(sequence, caplog):
     """Frames 0-14, three blank frames, then frames 18-21 with their colours inverted (with their depth): ORB's
     descriptors of an inverted image match nothing in the map, so frame 18 starts map segment 1 at the prediction
-    across the blank frames, about 20 cm from its truth, and the inverted frames track each other in it. Frames
+    across the blank frames, over 15 cm from its truth, and the inverted frames track each other in it. Frames
     22-29 come back as recorded and tracking returns to segment 0; nothing joins segment 1 (its descriptors match no
     placed point). At the end the segment is moved rigidly to where the frames around it put it, mostly by the
     placed frames right after it: every frame of it, and the lost frames, end within 6 cm of the truth."""
