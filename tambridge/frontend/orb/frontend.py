@@ -514,7 +514,8 @@ class OrbFrontend:
 
     def _placed_segments(self) -> set[int]:
         """The map segments in the first keyframe's world: its own, and those a loop edge ties to a placed one. The
-        others began at a predicted pose and were never joined: their poses keep that prediction's error."""
+        others began at a predicted pose and were never joined: their poses keep that prediction's error (until
+        :meth:`_place_unjoined_segments` at the end)."""
         keyframes = self.map.keyframes
         placed = {keyframes[0].segment} if keyframes else set()
         ties = [(keyframes[a].segment, keyframes[b].segment) for a, b, _ in self.map.loop_edges]
