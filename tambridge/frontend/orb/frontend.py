@@ -130,7 +130,8 @@ class OrbFrontend:
         # keyframe's bundle-adjustment surface until the next keyframe (None with dense_depth off, before the first
         # keyframe, or after a relocalisation with ba_dense_depth off).
         self._dense_reference: DenseReference | None = None
-        self.frames_with_dense_depth = 0
+        self.frames_with_dense_depth = 0  # frames whose ORB tracking used the depth term (a retry counts once)
+        self._dense_term_this_frame = False
         self._frames_since_keyframe = 0
         self._keyframe_requested = False
         self._lost_streak = 0
@@ -180,7 +181,9 @@ class OrbFrontend:
         if features is None:
             features = self.extract(frame)
         with self._lock:
+            self._dense_term_this_frame = False
             result = self._track_features(frame, features)
+            self.frames_with_dense_depth += self._dense_term_this_frame
             if self._loop_closed_unreported:
                 result.loop_closed, self._loop_closed_unreported = True, False
             return result
@@ -320,7 +323,7 @@ class OrbFrontend:
             cos_angle = np.clip((np.trace(self._motion[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
             if matches >= config.dense_auto_max_matches and np.degrees(np.arccos(cos_angle)) <= config.dense_auto_min_rotation_deg:
                 return None
-        self.frames_with_dense_depth += 1
+        self._dense_term_this_frame = True
         return self._dense_term_of(depth_m)
 
     def _dense_term_of(self, depth_m: np.ndarray) -> DenseTerm:
