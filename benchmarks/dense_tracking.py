@@ -9,7 +9,10 @@ segments: ATE, RPE, the largest error, tracking frames/s, and the term's own cos
 images, no added blur): a real-data stand-in for fast rotation, and a run through the lost-frame and
 relocalisation paths where tracking breaks. ``--exposure-frames N`` (odd) adds the blur of a longer exposure: each
 tracked frame's colour is the mean of the N recorded frames centred on it (blurred along the camera's real
-motion, N/30 s at 30 frames/s), its depth and stamps its own.
+motion, N/30 s at 30 frames/s), its depth and stamps its own. ``--offsets K ...`` starts each strided run at the
+segment's K-th frame as well: the same motion through other frames, which at large strides decides which frames
+are lost. ``--lost-priors`` asks, at each frame a run loses, whether the image or the prior was at fault
+(:func:`lost_frame_priors`).
 
 Tracking only (the ORB frontend with the default settings: loop closure, global BA, mapping thread), no
 Gaussian mapping. frames/s counts the time inside ``track`` and ``finish``; under shared CPUs compare the modes'
@@ -154,6 +157,82 @@ def time_offset_scan(estimate, ground_truth, offsets_ms=range(-100, 110, 10)) ->
     return scan
 
 
+def lost_frame_priors(frames, sequence, config, radius_scales=(4.0, 6.0)) -> dict:
+    """Whether a lost frame is lost for its image or for its prior. Tracks ``frames`` inline and, right after each
+    frame tracking loses, searches the local map again (the frontend's own search, its radius times 2 as after a
+    loss) from two other priors: the ground-truth pose, expressed in the run's world through the first tracked
+    frame's estimate, and the frontend's own prior with that radius times each of ``radius_scales``. Per lost frame: the prior's
+    distance from the ground truth, for each search the inliers and the distance of the pose found (cm), and its
+    error in the run's final trajectory (SE(3)-aligned, cm; bridged by the frames around it); with the count of the
+    run's frames over 5 cm, and how many of them are lost."""
+    from tambridge.evaluation.trajectory import evaluate_trajectory
+    from tambridge.frontend.orb.frontend import OrbFrontend
+    from tambridge.frontend.orb.matching import build_keypoint_grid
+    from tambridge.geometry import inverse
+
+    frontend = OrbFrontend(sequence.camera, dataclasses.replace(config, mapping_thread=False))
+    truth = ground_truth_at(sequence.ground_truth, np.array([frame.timestamp_s for frame in frames]))
+    truth_by_time = dict(zip(truth.timestamps_s, truth.world_from_camera))
+    track_local_map, priors = frontend._track_local_map, []
+
+    def recorded(features, grid, predicted, *args):
+        priors.append(predicted)
+        return track_local_map(features, grid, predicted, *args)
+
+    frontend._track_local_map = recorded
+    world_from_first, rows = None, []
+
+    def searched(features, grid, camera_from_world, radius_scale, depth_m, truth_world_from_camera) -> dict:
+        fix, _, _ = track_local_map(features, grid, camera_from_world, radius_scale, depth_m)
+        if fix is None:
+            return {"inliers": 0, "error_cm": None}
+        error_m = np.linalg.norm(inverse(fix.camera_from_world)[:3, 3] - truth_world_from_camera[:3, 3])
+        return {"inliers": int(fix.inlier_count), "error_cm": round(100 * float(error_m), 2)}
+
+    for position, frame in enumerate(frames):
+        priors.clear()
+        lost_before = frontend.frames_lost
+        result = frontend.track(frame)
+        if world_from_first is None and result.tracked and frame.timestamp_s in truth_by_time:
+            world_from_first = result.world_from_camera @ inverse(truth_by_time[frame.timestamp_s])
+        # A frame that starts a map segment is not lost: the new segment's map is its own.
+        if frontend.frames_lost == lost_before or not priors or world_from_first is None or frame.timestamp_s not in truth_by_time:
+            continue
+        truth_pose = world_from_first @ truth_by_time[frame.timestamp_s]
+        features = frontend.extract(frame)
+        grid = build_keypoint_grid(features.keypoints_px, sequence.camera.width, sequence.camera.height)
+        prior_error_m = np.linalg.norm(inverse(priors[0])[:3, 3] - truth_pose[:3, 3])
+        with frontend._lock:
+            row = {"frame": position, "prior_error_cm": round(100 * float(prior_error_m), 2),
+                   "from_ground_truth": searched(features, grid, inverse(truth_pose), 2.0, frame.depth_m, truth_pose)}
+            for scale in radius_scales:
+                row[f"from_prior_radius_x{scale:g}"] = searched(features, grid, priors[0], 2.0 * scale, frame.depth_m,
+                                                                truth_pose)
+        rows.append(row)
+    final = frontend.finish()
+    errors = evaluate_trajectory(final.trajectory, sequence.ground_truth, align="se3")
+    error_by_time = dict(zip(np.round(errors.timestamps_s, 6), errors.ate_errors_m))
+    lost_frames = {row["frame"] for row in rows}
+    for row in rows:
+        row["final_error_cm"] = round(100 * float(error_by_time.get(round(frames[row["frame"]].timestamp_s, 6), np.nan)), 2)
+    over = [i for i, frame in enumerate(frames) if error_by_time.get(round(frame.timestamp_s, 6), 0.0) > 0.05]
+    return {"lost": rows, "frames_over_5cm": len(over), "lost_frames_over_5cm": len(lost_frames.intersection(over))}
+
+
+def lost_priors_summary(diagnosis: dict, min_inliers: int) -> str:
+    """One line per search: how many lost frames it places (``min_inliers``), and how many of those within 5 cm."""
+    rows = diagnosis["lost"]
+    lines = [f"{len(rows)} lost frames; their priors {np.median([r['prior_error_cm'] for r in rows]):.1f} cm off (median)"
+             if rows else "no lost frames"]
+    for key in [k for k in (rows[0] if rows else {}) if k.startswith("from_")]:
+        placed = [r[key] for r in rows if r[key]["inliers"] >= min_inliers]
+        good = sum(p["error_cm"] <= 5.0 for p in placed)
+        worst = max((p["error_cm"] for p in placed), default=0.0)
+        lines.append(f"{key}: {len(placed)} placed, {good} within 5 cm, worst {worst:.1f} cm")
+    lines.append(f"{diagnosis['frames_over_5cm']} frames over 5 cm in the run, {diagnosis['lost_frames_over_5cm']} of them lost")
+    return "; ".join(lines)
+
+
 def depth_fit(frames, sequence, estimate, gap: int = 1, step: int = 10) -> dict:
     """How well relative poses fit the depth: for frame pairs (i, i + gap), the median absolute point-to-plane
     residual (mm) of frame i + gap's depth against frame i's at the ground truth's relative pose, at the
@@ -221,7 +300,8 @@ def longer_exposure(frames: list, index: int, count: int):
 
 
 def format_table(rows: list[dict]) -> str:
-    columns = [("segment", "segment", "{}"), ("stride", "stride", "{}"), ("exposure frames", "exposure_frames", "{}"),
+    columns = [("segment", "segment", "{}"), ("stride", "stride", "{}"), ("offset", "offset", "{}"),
+               ("exposure frames", "exposure_frames", "{}"),
                ("dense_depth", "mode", "{}"), ("frames", "frames", "{}"),
                ("ATE cm", "ate_cm", "{:.2f}"), ("max cm", "max_cm", "{:.2f}"), ("RPE cm/frame", "rpe_cm", "{:.3f}"),
                ("RPE deg/frame", "rpe_deg", "{:.3f}"), ("frames/s", "fps", "{:.1f}"),
@@ -242,6 +322,9 @@ def main() -> None:
     parser.add_argument("--folder", type=Path, action="append", default=[],
                         help="also a whole sequence folder (a synthetic one: tambridge synth)")
     parser.add_argument("--modes", nargs="*", default=list(MODES), choices=MODES)
+    parser.add_argument("--offsets", nargs="*", type=int, default=[0], metavar="K",
+                        help="also start each strided run at the segment's K-th frame (K below the stride; others are "
+                        "skipped for that stride): other frames of the same motion (default 0)")
     parser.add_argument("--strides", nargs="*", type=int, default=[1], metavar="N",
                         help="also track every N-th frame only (the camera N times as fast); default 1")
     parser.add_argument("--exposure-frames", type=int, default=1, metavar="N",
@@ -250,10 +333,15 @@ def main() -> None:
     parser.add_argument("--trajectories", type=Path, help="write each run's trajectory here (SEGMENT_MODE.txt)")
     parser.add_argument("--limits", action="store_true", help="also scan clock offsets against the ground truth and "
                         "measure how well its relative poses fit the depth (with the last stride's and mode's trajectory)")
+    parser.add_argument("--lost-priors", action="store_true", help="also track each strided run once more inline "
+                        "and, at each lost frame, search the local map from the ground-truth pose and with a wider "
+                        "radius: is a frame lost for its image or for its prior?")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "dense_tracking.json")
     args = parser.parse_args()
     if any(stride < 1 for stride in args.strides):
         parser.error(f"--strides {' '.join(map(str, args.strides))}: each must be 1 or more")
+    if any(offset < 0 for offset in args.offsets):
+        parser.error(f"--offsets {' '.join(map(str, args.offsets))}: each must be 0 or more")
     if args.exposure_frames < 1 or args.exposure_frames % 2 == 0:
         parser.error(f"--exposure-frames {args.exposure_frames}: give an odd count, 1 or more")
     configs = {mode: orb_config([f"dense_depth={mode}", *args.set]) for mode in args.modes}
@@ -267,16 +355,19 @@ def main() -> None:
         end = len(sequence) if segment["end"] is None else min(segment["end"], len(sequence))
         frames = [sequence[index] for index in range(segment["start"], end)]
         costs[name] = term_cost(frames, sequence)
-        for stride in args.strides:
+        for stride, offset in [(stride, offset) for stride in args.strides for offset in args.offsets if offset < stride]:
             for mode in args.modes:
-                suffix = ("" if stride == 1 else f"_stride{stride}") + \
+                suffix = ("" if stride == 1 else f"_stride{stride}") + ("" if offset == 0 else f"_offset{offset}") + \
                     ("" if args.exposure_frames == 1 else f"_exposure{args.exposure_frames}")
                 path = None if args.trajectories is None else args.trajectories / f"{name}_{mode}{suffix}.txt"
-                used = [longer_exposure(frames, index, args.exposure_frames) for index in range(0, len(frames), stride)]
+                used = [longer_exposure(frames, index, args.exposure_frames) for index in range(offset, len(frames), stride)]
                 trajectory, row = track_segment(used, sequence, configs[mode], path)
-                row = {"segment": name, "stride": stride, "exposure_frames": args.exposure_frames, **row,
-                       "load_1min": os.getloadavg()[0]}
+                row = {"segment": name, "stride": stride, "offset": offset, "exposure_frames": args.exposure_frames,
+                       **row, "load_1min": os.getloadavg()[0]}
                 print(format_table([row]).splitlines()[-1], flush=True)
+                if args.lost_priors:
+                    row["lost_priors"] = lost_frame_priors(used, sequence, configs[mode])
+                    print(f"  lost priors: {lost_priors_summary(row['lost_priors'], configs[mode].min_inliers)}", flush=True)
                 rows.append(row)
         if args.limits:
             limits[name] = {"ate_cm_by_clock_offset_ms": time_offset_scan(trajectory, sequence.ground_truth),
