@@ -50,6 +50,26 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         temp_path.write_bytes(data)
 
 
+def check_name_lengths(path: Path, where: str, error: type[TambridgeError] = TambridgeError) -> None:
+    """Raise ``error`` (one line starting with ``where``) where a part of ``path`` yet to be made is longer than its
+    file system allows (``NAME_MAX``, ``PATH_MAX`` of the deepest folder that exists): checked before anything is
+    made, since making the folders above it first would leave them behind empty."""
+    absolute = Path(os.path.abspath(path))
+    existing = absolute
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return  # a file where a folder should be: the callers' own checks name it
+    name_max, path_max = os.pathconf(existing, "PC_NAME_MAX"), os.pathconf(existing, "PC_PATH_MAX")
+    for part in absolute.relative_to(existing).parts:
+        if len(os.fsencode(part)) > name_max:
+            raise error(f"{where}: its part {part[:24]}... is {len(os.fsencode(part))} bytes, more than the "
+                        f"{name_max} a name may have here; give a shorter path")
+    if len(os.fsencode(str(absolute))) >= path_max:
+        raise error(f"{where}: is {len(os.fsencode(str(absolute)))} bytes long, more than the {path_max - 1} a path "
+                    f"may have here; give a shorter path")
+
+
 def check_new_or_empty_folder(path: Path, option: str = "", holds: str | None = None, marks: Iterable[str] = (),
                               error: type[TambridgeError] = TambridgeError) -> None:
     """Raise ``error`` (one line naming ``option`` and ``path``) unless ``path`` is a folder yet to be made, an empty
@@ -60,6 +80,7 @@ def check_new_or_empty_folder(path: Path, option: str = "", holds: str | None = 
     if path.exists() and not path.is_dir():
         raise error(f"{where}: is a file; give a folder")
     if not path.is_dir():
+        check_name_lengths(path, where, error)
         return
     entries = sorted(entry.name for entry in path.iterdir())
     if entries and not any((path / mark).is_file() for mark in marks):
@@ -92,6 +113,7 @@ def check_output_file(path: Path, option: str, inputs: Iterable[Path] = (),
         raise TambridgeError(f"{option} {path}: {parent} is a file, not a folder; name a file in a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise TambridgeError(f"{option} {path}: cannot write in {parent}; name a file in a folder you can write")
+    check_name_lengths(path, f"{option} {path}")
 
 
 CONFIGS_FOLDER = Path(__file__).resolve().parents[1] / "configs"

@@ -163,6 +163,8 @@ def test_evaluate_and_compare_refuse_bad_output_paths_before_any_work(synthetic_
          f"--json {tmp_path / 'e.png'}: is also the --plot file; name two different files"),
         (["compare", estimate, "--gt", ground_truth, "--plot", tmp_path / "c.png", "--json", tmp_path / "c.png"],
          f"--json {tmp_path / 'c.png'}: is also the --plot file"),
+        (["evaluate", estimate, ground_truth, "--plot", tmp_path / "new" / ("p" * 300 + ".png")],
+         f"--plot {tmp_path / 'new' / ('p' * 300 + '.png')}: its part {'p' * 24}... is 304 bytes"),
     ):
         result = CliRunner().invoke(main, [str(argument) for argument in command])
         assert result.exit_code == 2 and result.output.startswith(f"error: {message}"), result.output
@@ -186,6 +188,7 @@ def test_evaluate_and_compare_refuse_bad_output_paths_before_any_work(synthetic_
     (["config", "--config", "{tmp}/bad.yaml"], "{tmp}/bad.yaml: not valid YAML (expected ',' or ']', but got '<stream end>' "
                                                "at line 2, column 1)"),
     (["config", "--set", "mapper.iterations=[1"], "--set 'mapper.iterations=[1': the value is not valid YAML"),
+    (["synth", "{tmp}/deeper/" + "x" * 300], "{tmp}/deeper/" + "x" * 300 + ": its part " + "x" * 24 + "... is 300 bytes"),
 ])
 def test_argument_errors_are_one_line_and_write_nothing(tmp_path, arguments, message):
     (tmp_path / "bad.yaml").write_text("mapper: [1, 2\n")
@@ -260,6 +263,26 @@ def test_a_full_disk_or_a_refused_path_is_one_line_with_what_to_do(synthetic_seq
         # A full disk or a failing file system is not bad input (exit 1: tambridge batch retries it).
         assert result.exit_code == (2 if number == errno.EACCES else 1)
         assert result.output == f"error: {tmp_path / 'out' / 'splats.ply'}: {strerror}; {fix}\n"
+
+
+def test_an_output_folder_with_too_long_a_name_is_refused_before_its_parents_are_made(synthetic_sequence_dir, tmp_path):
+    output = tmp_path / "runs" / "today" / ("x" * 300)
+    result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(output)])
+    assert result.exit_code == 2 and result.output.startswith(f"error: {output}: its part "), result.output
+    assert "a name may have here; give a shorter path" in result.output and len(result.output.splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_ctrl_c_before_a_run_starts_is_one_line_with_the_status_of_sigint(synthetic_sequence_dir, tmp_path, monkeypatch):
+    """Ctrl-C while a command loads its libraries (open3d, torch), before a run installs its own handlers."""
+    import pipelines.reconstruct
+
+    def interrupted(*arguments, **options):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipelines.reconstruct, "reconstruct", interrupted)
+    result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out")])
+    assert (result.exit_code, result.output) == (130, "error: stopped by SIGINT\n")
 
 
 @pytest.mark.slow
