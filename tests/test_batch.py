@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from pipelines.batch import Attempt, error_line, worth_retrying
 from tambridge.batch.sequences import resolve_sequences
@@ -171,16 +172,21 @@ def test_a_cluster_that_cannot_be_joined_stops_the_batch_before_it_writes(sequen
 def test_a_corrupt_sequence_fails_alone_and_the_batch_says_so(sequences, tmp_path):
     out_dir = tmp_path / "out"
     names = ("first", "second", "corrupt")
-    batch = subprocess.run(_batch_command([sequences[name] for name in names], out_dir, "--retries", "1"),
-                           cwd=ROOT, env=_environment(), capture_output=True, text=True, timeout=300)
+    # A preset by name, from a folder outside the checkout: the batch gives each run the checkout's file.
+    batch = subprocess.run(_batch_command([sequences[name] for name in names], out_dir, "--retries", "1",
+                                          "--config", "fast"),
+                           cwd=tmp_path, env=_environment(), capture_output=True, text=True, timeout=300)
 
     assert batch.returncode == 1, batch.stderr
     assert "error: 1 of 3 sequences failed" in batch.stderr
     assert "failed: corrupt: " in batch.stderr and "cannot decode image" in batch.stderr
     rows = _summary(out_dir)
     assert list(rows) == list(names)
+    assert json.loads((out_dir / "summary.json").read_text())["config"] == str((ROOT / "configs" / "fast.yaml").resolve())
     for name in ("first", "second"):
         row, metrics = rows[name], read_metrics(out_dir / name / "metrics.json")
+        config = yaml.safe_load((out_dir / name / "config.yaml").read_text())
+        assert (config["bridge"]["iterations"], config["mapper"]["iterations"]) == (5, 15)  # configs/fast.yaml's
         assert (row["status"], row["attempts"], row["error"]) == ("finished", 1, None)
         assert (row["frames"], row["keyframes"]) == (SHORT_FRAMES, metrics.keyframes)
         assert row["ate_rmse_m"] == metrics.trajectory.ate_rmse_m
