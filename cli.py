@@ -16,7 +16,7 @@ import click
 from tambridge.errors import INPUT_ERROR_STATUS, TambridgeError
 from tambridge.export.config import MeshSource
 from tambridge.settings import Device
-from tambridge.stop import signal_name
+from tambridge.stop import RunStopped, signal_name
 
 
 def _fail(error: Exception | str, status: int | None = None) -> None:
@@ -28,7 +28,8 @@ def _fail(error: Exception | str, status: int | None = None) -> None:
 
 class _Group(click.Group):
     """Turns tambridge's input errors, click's errors in a command's arguments, the system's refusals to read or
-    write a file (permissions, a full disk) and a Ctrl-C into one line on stderr, never a traceback."""
+    write a file (permissions, a full disk) and a Ctrl-C while a command runs into one line on stderr, never a
+    traceback."""
 
     def invoke(self, ctx):
         try:
@@ -40,8 +41,8 @@ class _Group(click.Group):
             _fail(TambridgeError(f"{' '.join(error.format_message().split())} (see {command_path} --help)"))
         except KeyboardInterrupt:
             # Ctrl-C where no run's own handlers are installed (tambridge.stop), e.g. while a command loads its
-            # libraries: reported as a run stopped by SIGINT would be, with the shell's status for it.
-            _fail(f"stopped by {signal_name(signal.SIGINT)}", 128 + signal.SIGINT)
+            # libraries: reported as a run stopped by SIGINT is.
+            _fail(RunStopped(signal.SIGINT, f"stopped by {signal_name(signal.SIGINT)}"))
         except BrokenPipeError:
             # The reader of the output went away (`tambridge config | head`): nothing to report to it.
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -159,78 +159,83 @@ def time_offset_scan(estimate, ground_truth, offsets_ms=range(-100, 110, 10)) ->
 
 def lost_frame_priors(frames, sequence, config, radius_scales=(4.0, 6.0)) -> dict:
     """Whether a lost frame is lost for its image or for its prior. Tracks ``frames`` inline and, right after each
-    frame tracking loses, searches the local map again (the frontend's own search, its radius times 2 as after a
-    loss) from two other priors: the ground-truth pose, expressed in the run's world through the first tracked
-    frame's estimate, and the frontend's own prior with that radius times each of ``radius_scales``. Per lost frame: the prior's
-    distance from the ground truth, for each search the inliers and the distance of the pose found (cm), and its
-    error in the run's final trajectory (SE(3)-aligned, cm; bridged by the frames around it); with the count of the
-    run's frames over 5 cm, and how many of them are lost."""
+    frame tracking loses, repeats its first local-map search (the same features, keypoint grid and depth, the radius
+    doubled as after a loss) from two other priors: the ground-truth pose, put into the run's world through the first
+    tracked frame, and the frontend's own prior with that radius times each of ``radius_scales``. Per lost frame: its
+    position in ``frames``, how the frame before it was placed, its prior's distance from the ground truth (cm,
+    degrees), for each search the inliers and the distance of the pose found (cm), and its error in the run's final
+    trajectory (SE(3)-aligned, cm; bridged by the frames around it); with the count of the run's frames over 5 cm,
+    and how many of them are lost."""
     from tambridge.evaluation.trajectory import evaluate_trajectory
     from tambridge.frontend.orb.frontend import OrbFrontend
-    from tambridge.frontend.orb.matching import build_keypoint_grid
     from tambridge.geometry import inverse
 
     frontend = OrbFrontend(sequence.camera, dataclasses.replace(config, mapping_thread=False))
     truth = ground_truth_at(sequence.ground_truth, np.array([frame.timestamp_s for frame in frames]))
     truth_by_time = dict(zip(truth.timestamps_s, truth.world_from_camera))
-    track_local_map, priors = frontend._track_local_map, []
+    track_local_map, searches = frontend._track_local_map, []
 
-    def recorded(features, grid, predicted, *args):
-        priors.append(predicted)
-        return track_local_map(features, grid, predicted, *args)
+    def recorded(features, grid, predicted, radius_scale, depth_m):
+        searches.append((features, grid, predicted, depth_m))
+        return track_local_map(features, grid, predicted, radius_scale, depth_m)
 
     frontend._track_local_map = recorded
-    world_from_first, rows = None, []
 
-    def searched(features, grid, camera_from_world, radius_scale, depth_m, truth_world_from_camera) -> dict:
+    def searched(camera_from_world, radius_scale, truth_pose) -> dict:
+        features, grid, _, depth_m = searches[0]
         fix, _, _ = track_local_map(features, grid, camera_from_world, radius_scale, depth_m)
         if fix is None:
             return {"inliers": 0, "error_cm": None}
-        error_m = np.linalg.norm(inverse(fix.camera_from_world)[:3, 3] - truth_world_from_camera[:3, 3])
+        error_m = np.linalg.norm(inverse(fix.camera_from_world)[:3, 3] - truth_pose[:3, 3])
         return {"inliers": int(fix.inlier_count), "error_cm": round(100 * float(error_m), 2)}
 
+    run_world_from_truth_world, rows, before = None, [], "none"
     for position, frame in enumerate(frames):
-        priors.clear()
+        searches.clear()
         lost_before = frontend.frames_lost
         result = frontend.track(frame)
-        if world_from_first is None and result.tracked and frame.timestamp_s in truth_by_time:
-            world_from_first = result.world_from_camera @ inverse(truth_by_time[frame.timestamp_s])
+        if run_world_from_truth_world is None and result.tracked and frame.timestamp_s in truth_by_time:
+            run_world_from_truth_world = result.world_from_camera @ inverse(truth_by_time[frame.timestamp_s])
         # A frame that starts a map segment is not lost: the new segment's map is its own.
-        if frontend.frames_lost == lost_before or not priors or world_from_first is None or frame.timestamp_s not in truth_by_time:
-            continue
-        truth_pose = world_from_first @ truth_by_time[frame.timestamp_s]
-        features = frontend.extract(frame)
-        grid = build_keypoint_grid(features.keypoints_px, sequence.camera.width, sequence.camera.height)
-        prior_error_m = np.linalg.norm(inverse(priors[0])[:3, 3] - truth_pose[:3, 3])
-        with frontend._lock:
-            row = {"frame": position, "prior_error_cm": round(100 * float(prior_error_m), 2),
-                   "from_ground_truth": searched(features, grid, inverse(truth_pose), 2.0, frame.depth_m, truth_pose)}
+        lost = frontend.frames_lost > lost_before
+        if lost and searches and run_world_from_truth_world is not None and frame.timestamp_s in truth_by_time:
+            truth_pose = run_world_from_truth_world @ truth_by_time[frame.timestamp_s]
+            prior = searches[0][2]
+            prior_from_truth = prior @ truth_pose
+            angle = np.degrees(np.arccos(np.clip((np.trace(prior_from_truth[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+            row = {"position": position, "after": before,
+                   "prior_error_cm": round(100 * float(np.linalg.norm(inverse(prior)[:3, 3] - truth_pose[:3, 3])), 2),
+                   "prior_error_deg": round(float(angle), 2),
+                   "from_ground_truth": searched(inverse(truth_pose), 2.0, truth_pose)}
             for scale in radius_scales:
-                row[f"from_prior_radius_x{scale:g}"] = searched(features, grid, priors[0], 2.0 * scale, frame.depth_m,
-                                                                truth_pose)
-        rows.append(row)
+                row[f"from_prior_radius_x{scale:g}"] = searched(prior, 2.0 * scale, truth_pose)
+            rows.append(row)
+        before = "lost" if lost else "relocalised" if result.relocalised else "tracked" if result.tracked else "segment start"
     final = frontend.finish()
     errors = evaluate_trajectory(final.trajectory, sequence.ground_truth, align="se3")
-    error_by_time = dict(zip(np.round(errors.timestamps_s, 6), errors.ate_errors_m))
-    lost_frames = {row["frame"] for row in rows}
+    error_by_time = dict(zip(errors.timestamps_s, errors.ate_errors_m))
     for row in rows:
-        row["final_error_cm"] = round(100 * float(error_by_time.get(round(frames[row["frame"]].timestamp_s, 6), np.nan)), 2)
-    over = [i for i, frame in enumerate(frames) if error_by_time.get(round(frame.timestamp_s, 6), 0.0) > 0.05]
-    return {"lost": rows, "frames_over_5cm": len(over), "lost_frames_over_5cm": len(lost_frames.intersection(over))}
+        row["final_error_cm"] = round(100 * float(error_by_time[frames[row["position"]].timestamp_s]), 2)
+    over = {position for position, frame in enumerate(frames) if error_by_time.get(frame.timestamp_s, 0.0) > 0.05}
+    return {"lost": rows, "frames_over_5cm": len(over),
+            "lost_frames_over_5cm": len(over.intersection(row["position"] for row in rows))}
 
 
 def lost_priors_summary(diagnosis: dict, min_inliers: int) -> str:
-    """One line per search: how many lost frames it places (``min_inliers``), and how many of those within 5 cm."""
+    """One line: the lost frames, their priors' median distance from the truth, and per search how many it places
+    (``min_inliers``), how many of those within 5 cm and the worst; then the run's frames over 5 cm."""
     rows = diagnosis["lost"]
-    lines = [f"{len(rows)} lost frames; their priors {np.median([r['prior_error_cm'] for r in rows]):.1f} cm off (median)"
-             if rows else "no lost frames"]
-    for key in [k for k in (rows[0] if rows else {}) if k.startswith("from_")]:
-        placed = [r[key] for r in rows if r[key]["inliers"] >= min_inliers]
-        good = sum(p["error_cm"] <= 5.0 for p in placed)
-        worst = max((p["error_cm"] for p in placed), default=0.0)
-        lines.append(f"{key}: {len(placed)} placed, {good} within 5 cm, worst {worst:.1f} cm")
-    lines.append(f"{diagnosis['frames_over_5cm']} frames over 5 cm in the run, {diagnosis['lost_frames_over_5cm']} of them lost")
-    return "; ".join(lines)
+    if not rows:
+        return f"no lost frames; {diagnosis['frames_over_5cm']} frames over 5 cm in the run"
+    parts = [f"{len(rows)} lost frames; their priors {np.median([row['prior_error_cm'] for row in rows]):.1f} cm off "
+             "(median)"]
+    for search in [key for key in rows[0] if key.startswith("from_")]:
+        placed = [row[search]["error_cm"] for row in rows if row[search]["inliers"] >= min_inliers]
+        parts.append(f"{search}: {len(placed)} placed, {sum(error <= 5.0 for error in placed)} within 5 cm, worst "
+                     f"{max(placed, default=0.0):.2f} cm")
+    parts.append(f"{diagnosis['frames_over_5cm']} frames over 5 cm in the run, {diagnosis['lost_frames_over_5cm']} of "
+                 "them lost")
+    return "; ".join(parts)
 
 
 def depth_fit(frames, sequence, estimate, gap: int = 1, step: int = 10) -> dict:
@@ -333,7 +338,7 @@ def main() -> None:
     parser.add_argument("--trajectories", type=Path, help="write each run's trajectory here (SEGMENT_MODE.txt)")
     parser.add_argument("--limits", action="store_true", help="also scan clock offsets against the ground truth and "
                         "measure how well its relative poses fit the depth (with the last stride's and mode's trajectory)")
-    parser.add_argument("--lost-priors", action="store_true", help="also track each strided run once more inline "
+    parser.add_argument("--lost-priors", action="store_true", help="also track each run once more inline "
                         "and, at each lost frame, search the local map from the ground-truth pose and with a wider "
                         "radius: is a frame lost for its image or for its prior?")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "dense_tracking.json")

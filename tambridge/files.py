@@ -50,22 +50,29 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         temp_path.write_bytes(data)
 
 
+def deepest_existing(path: Path) -> Path:
+    """``path`` where it exists, else its nearest ancestor that does (a name too long to look up counts as absent)."""
+    path = Path(path)
+    while not os.path.exists(path) and path != path.parent:
+        path = path.parent
+    return path
+
+
 def check_name_lengths(path: Path, where: str, error: type[TambridgeError] = TambridgeError) -> None:
-    """Raise ``error`` (one line starting with ``where``) where a part of ``path`` yet to be made is longer than its
-    file system allows (``NAME_MAX``, ``PATH_MAX`` of the deepest folder that exists): checked before anything is
-    made, since making the folders above it first would leave them behind empty."""
+    """Raise ``error`` (one line starting with ``where``) where a part of ``path`` below its deepest existing folder
+    is longer than that folder's file system allows a name (``NAME_MAX``), or the whole path than it allows a path
+    (``PATH_MAX``). Checked before anything else looks the path up (the system's own error would not say which part)
+    and before anything is made (the folders above it would be left behind empty)."""
     absolute = Path(os.path.abspath(path))
-    existing = absolute
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        return  # a file where a folder should be: the callers' own checks name it
+    existing = deepest_existing(absolute)
+    if not os.path.isdir(existing):
+        return  # a file where a folder should be: the caller's next check says so
     name_max, path_max = os.pathconf(existing, "PC_NAME_MAX"), os.pathconf(existing, "PC_PATH_MAX")
     for part in absolute.relative_to(existing).parts:
-        if len(os.fsencode(part)) > name_max:
+        if 0 < name_max < len(os.fsencode(part)):  # pathconf gives -1 where the system sets no limit
             raise error(f"{where}: its part {part[:24]}... is {len(os.fsencode(part))} bytes, more than the "
                         f"{name_max} a name may have here; give a shorter path")
-    if len(os.fsencode(str(absolute))) >= path_max:
+    if 0 < path_max <= len(os.fsencode(str(absolute))):
         raise error(f"{where}: is {len(os.fsencode(str(absolute)))} bytes long, more than the {path_max - 1} a path "
                     f"may have here; give a shorter path")
 
@@ -77,10 +84,10 @@ def check_new_or_empty_folder(path: Path, option: str = "", holds: str | None = 
     words) leaves there. A folder of other files is the user's, not a command's to write into."""
     path = Path(path)
     where = f"{option} {path}" if option else f"{path}"
+    check_name_lengths(path, where, error)
     if path.exists() and not path.is_dir():
         raise error(f"{where}: is a file; give a folder")
     if not path.is_dir():
-        check_name_lengths(path, where, error)
         return
     entries = sorted(entry.name for entry in path.iterdir())
     if entries and not any((path / mark).is_file() for mark in marks):
@@ -98,6 +105,7 @@ def check_output_file(path: Path, option: str, inputs: Iterable[Path] = (),
     the command's other ``outputs`` (option, path). Called before any work, so that a bad output path fails before the
     work and before other outputs are written."""
     path = Path(path)
+    check_name_lengths(path, f"{option} {path}")
     for source in inputs:
         if Path(source).exists() and path.exists() and path.resolve() == Path(source).resolve():
             raise TambridgeError(f"{option} {path}: is an input of this command; name another file")
@@ -106,14 +114,11 @@ def check_output_file(path: Path, option: str, inputs: Iterable[Path] = (),
             raise TambridgeError(f"{option} {path}: is also the {other_option} file; name two different files")
     if path.is_dir():
         raise TambridgeError(f"{option} {path}: is a folder; name a file")
-    parent = path.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
+    parent = deepest_existing(path.parent)
     if not parent.is_dir():
         raise TambridgeError(f"{option} {path}: {parent} is a file, not a folder; name a file in a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise TambridgeError(f"{option} {path}: cannot write in {parent}; name a file in a folder you can write")
-    check_name_lengths(path, f"{option} {path}")
 
 
 CONFIGS_FOLDER = Path(__file__).resolve().parents[1] / "configs"

@@ -5,7 +5,7 @@ diagnosis."""
 import numpy as np
 import pytest
 
-from benchmarks.dense_tracking import longer_exposure, lost_frame_priors, orb_config
+from benchmarks.dense_tracking import longer_exposure, lost_frame_priors, lost_priors_summary, orb_config
 from benchmarks.loops import relative_drift_m, revisits
 from benchmarks.run_all import sequence_order
 from benchmarks.sequences import FR1_XYZ, MissingSequence, find_sequence, merge_rows
@@ -87,5 +87,19 @@ def test_lost_frames_of_a_fast_camera_are_placed_from_the_ground_truth_pose(synt
     lost = diagnosis["lost"]
     assert len(lost) >= 2 and all(row["prior_error_cm"] > 10.0 for row in lost)
     placed = [row["from_ground_truth"] for row in lost if row["from_ground_truth"]["inliers"] >= 30]
-    assert placed and all(fix["error_cm"] < 2.0 for fix in placed)
+    assert placed and all(fix["error_cm"] < 3.0 for fix in placed)
     assert all(row["final_error_cm"] > 5.0 for row in lost) and diagnosis["lost_frames_over_5cm"] == len(lost)
+    assert lost[0]["after"] in ("tracked", "relocalised") and all(row["prior_error_deg"] >= 0.0 for row in lost)
+
+
+def test_the_lost_priors_summary_counts_placed_frames_and_those_near_the_truth():
+    diagnosis = {"frames_over_5cm": 3, "lost_frames_over_5cm": 2, "lost": [
+        {"prior_error_cm": 10.0, "from_ground_truth": {"inliers": 40, "error_cm": 1.0},
+         "from_prior_radius_x4": {"inliers": 35, "error_cm": 22.5}},
+        {"prior_error_cm": 30.0, "from_ground_truth": {"inliers": 29, "error_cm": 0.5},
+         "from_prior_radius_x4": {"inliers": 0, "error_cm": None}}]}
+    assert lost_priors_summary(diagnosis, 30) == (
+        "2 lost frames; their priors 20.0 cm off (median); from_ground_truth: 1 placed, 1 within 5 cm, worst 1.00 cm; "
+        "from_prior_radius_x4: 1 placed, 0 within 5 cm, worst 22.50 cm; 3 frames over 5 cm in the run, 2 of them lost")
+    assert lost_priors_summary({"frames_over_5cm": 0, "lost_frames_over_5cm": 0, "lost": []}, 30) == (
+        "no lost frames; 0 frames over 5 cm in the run")

@@ -266,11 +266,14 @@ def test_a_full_disk_or_a_refused_path_is_one_line_with_what_to_do(synthetic_seq
 
 
 def test_an_output_folder_with_too_long_a_name_is_refused_before_its_parents_are_made(synthetic_sequence_dir, tmp_path):
-    output = tmp_path / "runs" / "today" / ("x" * 300)
-    result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(output)])
-    assert result.exit_code == 2 and result.output.startswith(f"error: {output}: its part "), result.output
-    assert "a name may have here; give a shorter path" in result.output and len(result.output.splitlines()) == 1
-    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "existing").mkdir()
+    for output, message in ((tmp_path / "runs" / "today" / ("x" * 300), "its part " + "x" * 24 + "... is 300 bytes"),
+                            (tmp_path / "existing" / ("x" * 300), "its part " + "x" * 24 + "... is 300 bytes"),
+                            (tmp_path / "existing" / "/".join(["y" * 200] * 25), "is ")):
+        result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(output)])
+        assert result.exit_code == 2 and result.output.startswith(f"error: {output}: {message}"), result.output
+        assert result.output.endswith("may have here; give a shorter path\n") and len(result.output.splitlines()) == 1
+    assert [path.name for path in tmp_path.iterdir()] == ["existing"] and not any((tmp_path / "existing").iterdir())
 
 
 def test_ctrl_c_before_a_run_starts_is_one_line_with_the_status_of_sigint(synthetic_sequence_dir, tmp_path, monkeypatch):
@@ -283,6 +286,7 @@ def test_ctrl_c_before_a_run_starts_is_one_line_with_the_status_of_sigint(synthe
     monkeypatch.setattr(pipelines.reconstruct, "reconstruct", interrupted)
     result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out")])
     assert (result.exit_code, result.output) == (130, "error: stopped by SIGINT\n")
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.slow
