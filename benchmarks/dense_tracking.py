@@ -168,7 +168,7 @@ def lost_frame_priors(frames, sequence, config, radius_scales=(4.0, 6.0)) -> dic
     and how many of them are lost."""
     from tambridge.evaluation.trajectory import evaluate_trajectory
     from tambridge.frontend.orb.frontend import OrbFrontend
-    from tambridge.geometry import inverse
+    from tambridge.geometry import inverse, rotation_angle_deg
 
     frontend = OrbFrontend(sequence.camera, dataclasses.replace(config, mapping_thread=False))
     truth = ground_truth_at(sequence.ground_truth, np.array([frame.timestamp_s for frame in frames]))
@@ -201,11 +201,9 @@ def lost_frame_priors(frames, sequence, config, radius_scales=(4.0, 6.0)) -> dic
         if lost and searches and run_world_from_truth_world is not None and frame.timestamp_s in truth_by_time:
             truth_pose = run_world_from_truth_world @ truth_by_time[frame.timestamp_s]
             prior = searches[0][2]
-            prior_from_truth = prior @ truth_pose
-            angle = np.degrees(np.arccos(np.clip((np.trace(prior_from_truth[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
             row = {"position": position, "after": before,
                    "prior_error_cm": round(100 * float(np.linalg.norm(inverse(prior)[:3, 3] - truth_pose[:3, 3])), 2),
-                   "prior_error_deg": round(float(angle), 2),
+                   "prior_error_deg": round(rotation_angle_deg(prior @ truth_pose), 2),
                    "from_ground_truth": searched(inverse(truth_pose), 2.0, truth_pose)}
             for scale in radius_scales:
                 row[f"from_prior_radius_x{scale:g}"] = searched(prior, 2.0 * scale, truth_pose)

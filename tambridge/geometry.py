@@ -95,6 +95,11 @@ def inverse(transform: np.ndarray) -> np.ndarray:
     return out
 
 
+def rotation_angle_deg(transform: np.ndarray) -> float:
+    """Angle (degrees) of the rotation of a 4x4 transform (or a 3x3 rotation), from its trace."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(transform[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+
+
 def orthonormalised(transform: np.ndarray) -> np.ndarray:
     """The 4x4 rigid transform with the rotation nearest (Frobenius) to ``transform``'s 3x3 block, by SVD.
 

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from tambridge.geometry import exp_se3, exp_se3_numba, exp_se3_torch, inverse, log_se3, look_at, pose_from_tum, tum_from_pose
+from tambridge.geometry import (exp_se3, exp_se3_numba, exp_se3_torch, inverse, log_se3, look_at, pose_from_tum,
+                                rotation_angle_deg, tum_from_pose)
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 0.3, 3.0])
@@ -13,6 +14,14 @@ def test_exp_log_round_trip(angle):
     transform = exp_se3(twist)
     np.testing.assert_allclose(transform[:3, :3] @ transform[:3, :3].T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(log_se3(transform), twist, atol=1e-9)
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.01, 0.3, 3.0, np.pi])
+def test_rotation_angle_is_the_angle_the_rotation_was_made_with(angle):
+    axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
+    transform = exp_se3(np.concatenate([[0.1, 0.2, 0.3], axis * angle]))
+    assert rotation_angle_deg(transform) == pytest.approx(np.degrees(angle), abs=1e-5)
+    assert rotation_angle_deg(transform[:3, :3]) == rotation_angle_deg(inverse(transform))
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-3, 0.3, 3.0])

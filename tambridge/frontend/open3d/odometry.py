@@ -14,7 +14,7 @@ import open3d as o3d
 
 from tambridge.camera import Camera
 from tambridge.state import attribute_state, restore_attributes
-from tambridge.geometry import inverse
+from tambridge.geometry import inverse, rotation_angle_deg
 from tambridge.frontend.contract import FrontendResult, KeyframeEvent, TrackResult, empty_timings
 from tambridge.io.tum import Frame
 from tambridge.trajectory import Trajectory
@@ -143,9 +143,8 @@ class FrameToFrameOdometry:
         if not self._keyframe_poses:
             return True
         last_from_current = inverse(self._keyframe_poses[len(self._keyframe_poses) - 1]) @ world_from_camera
-        rotation_deg = np.rad2deg(np.arccos(np.clip((np.trace(last_from_current[:3, :3]) - 1) / 2, -1.0, 1.0)))
         return bool(np.linalg.norm(last_from_current[:3, 3]) > self.keyframe_translation_m
-                    or rotation_deg > self.keyframe_rotation_deg)
+                    or rotation_angle_deg(last_from_current) > self.keyframe_rotation_deg)
 
     def request_keyframe(self) -> None:
         """Make the next successfully registered frame a keyframe."""

@@ -72,7 +72,7 @@ from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 from tambridge.frontend.contract import FrontendResult, KeyframeEvent, MapPointObservations, TrackResult, empty_timings
 from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, for_camera
 from tambridge.frontend.orb.vocabulary import KeyframeDatabase, Vocabulary
-from tambridge.geometry import interpolate_pose, inverse, poses_along
+from tambridge.geometry import interpolate_pose, inverse, poses_along, rotation_angle_deg
 from tambridge.io.tum import Frame
 from tambridge.trajectory import Trajectory
 
@@ -320,8 +320,7 @@ class OrbFrontend:
         if config.dense_depth == DenseDepthUse.never or self._dense_reference is None:
             return None
         if config.dense_depth == DenseDepthUse.auto:
-            cos_angle = np.clip((np.trace(self._motion[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-            if matches >= config.dense_auto_max_matches and np.degrees(np.arccos(cos_angle)) <= config.dense_auto_min_rotation_deg:
+            if matches >= config.dense_auto_max_matches and rotation_angle_deg(self._motion) <= config.dense_auto_min_rotation_deg:
                 return None
         self._dense_term_this_frame = True
         return self._dense_term_of(depth_m)
