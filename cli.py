@@ -31,6 +31,13 @@ class _Group(click.Group):
     write a file (permissions, a full disk) and a Ctrl-C while a command runs into one line on stderr, never a
     traceback."""
 
+    def make_context(self, info_name, args, parent=None, **extra):
+        try:
+            return super().make_context(info_name, args, parent, **extra)
+        except KeyboardInterrupt:
+            # Ctrl-C while click parses the arguments, before invoke: click itself would print "Aborted!", exit 1.
+            _fail(RunStopped(signal.SIGINT, f"stopped by {signal_name(signal.SIGINT)}"))
+
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)

@@ -5,6 +5,7 @@ import json
 import tarfile
 import threading
 
+import click
 import numpy as np
 import pytest
 import yaml
@@ -287,6 +288,16 @@ def test_ctrl_c_before_a_run_starts_is_one_line_with_the_status_of_sigint(synthe
     result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out")])
     assert (result.exit_code, result.output) == (130, "error: stopped by SIGINT\n")
     assert not (tmp_path / "out").exists()
+
+
+def test_ctrl_c_while_the_arguments_are_parsed_is_the_same_line(monkeypatch):
+    """Click would print "Aborted!" and exit 1 for a Ctrl-C in its own argument parsing."""
+    def interrupted(*arguments, **options):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(click.Group, "parse_args", interrupted)
+    result = CliRunner().invoke(main, ["evaluate", "--help"])
+    assert (result.exit_code, result.output) == (130, "error: stopped by SIGINT\n")
 
 
 @pytest.mark.slow
