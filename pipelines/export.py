@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from tambridge.camera import Camera
+from tambridge.checkpoint import sequence_differences, sequence_fingerprint
 from tambridge.config import load_config
 from tambridge.errors import ExportError
 from tambridge.evaluation.metrics import read_metrics
@@ -110,7 +111,8 @@ def export_run(run_dir: Path, output_dir: Path | None = None, format: str = "col
 
 
 def read_run(run_dir: Path) -> RunRecord:
-    """Read a finished run's folder and open its sequence as the run did; one-line errors for what is missing."""
+    """Read a finished run's folder and open its sequence as the run did; one-line errors for what is missing and
+    for a sequence that no longer holds the frames the run read (metrics.json's ``sequence_fingerprint``)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ExportError(f"{run_dir}: not a folder; pass the -o folder of a 'tambridge reconstruct' run")
@@ -118,7 +120,8 @@ def read_run(run_dir: Path) -> RunRecord:
     if not trajectory_path.is_file():
         raise ExportError(f"{trajectory_path}: not found; pass the -o folder of a finished 'tambridge reconstruct' run")
     # metrics.json is written last: its presence says the run finished.
-    folder = Path(read_metrics(run_dir / "metrics.json").sequence)
+    metrics = read_metrics(run_dir / "metrics.json")
+    folder = Path(metrics.sequence)
     sparse_map = read_sparse_map(run_dir / "sparse_map.npz")
     if not folder.is_dir():
         raise ExportError(f"{folder}: the run's sequence folder is gone (moved or deleted); the export needs its "
@@ -134,6 +137,13 @@ def read_run(run_dir: Path) -> RunRecord:
     if len(trajectory) != len(sequence) or np.abs(trajectory.timestamps_s - sequence.timestamps_s).max() > TIMESTAMP_TOLERANCE_S:
         raise ExportError(f"{trajectory_path}: {len(trajectory)} poses do not match the {len(sequence)} frames of {folder} "
                           "read with config.yaml's input settings; the sequence changed since the run")
+    if metrics.sequence_fingerprint is not None:
+        # The folder is metrics.json's own "sequence"; what matters here is that it still holds the frames the run read.
+        current = sequence_fingerprint(sequence)
+        differences = sequence_differences({**metrics.sequence_fingerprint, "folder": current["folder"]}, current)
+        if differences:
+            raise ExportError(f"{folder}: not the frames the run read ({'; '.join(differences)}); the export would pair "
+                              "the run's poses with other images: run reconstruct again on the folder as it is now")
     return RunRecord(run_dir, trajectory, sequence, sparse_map)
 
 

@@ -190,6 +190,7 @@ def reconstruct(
         metrics, errors = evaluate_run(sequence, config, tracking, mapping, exported, device, run_log, counters,
                                        peak_memory_tracking_mb)
         metrics.world = WorldMetrics(**world.summary())
+        metrics.sequence_fingerprint = fingerprint
         write_run_report(output_dir, metrics, sequence, errors, mapping, exported, tracking.trajectory,
                          counters.gaussian_counts)
         write_metrics(output_dir / "metrics.json", metrics)

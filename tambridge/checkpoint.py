@@ -140,7 +140,7 @@ def sequence_fingerprint(sequence: RgbdSequence) -> dict:
     }
 
 
-def _sequence_differences(saved: dict, current: dict) -> list[str]:
+def sequence_differences(saved: dict, current: dict) -> list[str]:
     """What differs between two :func:`sequence_fingerprint`, in words."""
     differences = []
     if saved.get("folder") != current["folder"]:
@@ -325,7 +325,7 @@ def check_resumable(path: Path, checkpoint: Checkpoint, config: dict, sequence: 
         raise CheckpointError(f"{path}: the checkpoint was written with another config ({shown}"
                               f"{', ...' if len(differing) > 5 else ''}); resume with the same options "
                               f"(see config.yaml beside it) or {START_OVER}")
-    differences = _sequence_differences(checkpoint.sequence, sequence)
+    differences = sequence_differences(checkpoint.sequence, sequence)
     if differences:
         raise CheckpointError(f"{path}: the checkpoint is of another sequence ({'; '.join(differences)}); resume with "
                               f"the same sequence or {START_OVER}")

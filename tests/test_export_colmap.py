@@ -17,6 +17,7 @@ import pipelines.export as export_module
 from pipelines.export import export_run
 from pipelines.reconstruct import reconstruct
 from tambridge.camera import Camera
+from tambridge.checkpoint import sequence_fingerprint
 from tambridge.config import load_config
 from tambridge.errors import ExportError
 from tambridge.evaluation.metrics import read_metrics
@@ -264,9 +265,13 @@ def distorted_run_dir(run_dir, sequence_dir, tmp_path_factory):
 
 
 def _point_run_at(run_dir, sequence_folder) -> None:
-    """Make a run's metrics.json name ``sequence_folder`` as the run's sequence (a moved or copied sequence)."""
+    """Make a run's metrics.json name ``sequence_folder`` as the run's sequence (a moved or copied sequence), with
+    the fingerprint a run of that folder writes (none where the folder does not exist)."""
     metrics = json.loads((run_dir / "metrics.json").read_text())
     metrics["sequence"] = str(sequence_folder)
+    metrics.pop("sequence_fingerprint")
+    if Path(sequence_folder).is_dir():
+        metrics["sequence_fingerprint"] = sequence_fingerprint(open_sequence(sequence_folder))
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
 
 
@@ -314,7 +319,10 @@ def _line_residual_px(rows: np.ndarray, columns: np.ndarray) -> float:
 
 
 def test_undistort_keeps_a_straight_edge_straight_as_opencv_does(distorted_run_dir, tmp_path):
-    sequence = open_sequence(read_metrics(distorted_run_dir / "metrics.json").sequence)
+    run, folder = tmp_path / "run", tmp_path / "room_lens"
+    shutil.copytree(distorted_run_dir, run)
+    shutil.copytree(read_metrics(distorted_run_dir / "metrics.json").sequence, folder)
+    sequence = open_sequence(folder)
     camera = sequence.sensor.camera
     # Frame 0 becomes the lens's image of a straight, slanted edge near the left border (where the lens bends most).
     rows, columns = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
@@ -323,8 +331,9 @@ def test_undistort_keeps_a_straight_edge_straight_as_opencv_does(distorted_run_d
     pinhole = np.repeat(pinhole[..., None], 3, axis=2).astype(np.float32)
     distorted = cv2.remap(pinhole, *_distorting_maps(camera), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     cv2.imwrite(str(sequence.rgb_paths[0]), np.round(distorted).astype(np.uint8))
+    _point_run_at(run, folder)  # as a run of the folder with this frame records it
 
-    model = _colmap_model(distorted_run_dir, tmp_path / "colmap", frames="every:100", images="undistort")
+    model = _colmap_model(run, tmp_path / "colmap", frames="every:100", images="undistort")
     (colmap_camera,) = model.cameras.values()
     assert colmap_camera.model == pycolmap.CameraModelId.PINHOLE
     exported = cv2.imread(str(tmp_path / "colmap" / "images" / "000000.png"))
@@ -435,6 +444,23 @@ def test_a_missing_image_is_refused_before_the_export_writes_anything(run_dir, s
     line = _refused([run, "--format", "colmap", "-o", tmp_path / "out", "--frames", "all"], tmp_path)
     assert victim.name in line and "rgb.txt" in line
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".*partial"))
+
+
+def test_an_image_changed_since_the_run_is_refused_before_the_export_writes_anything(run_dir, sequence_dir, tmp_path):
+    """Same names, same frame count and stamps, other pixels: the run's poses would be paired with images it never
+    read. metrics.json's fingerprint hashes the first, middle and last frames and stats every other."""
+    run, _ = _copied_run_and_an_image(run_dir, sequence_dir, tmp_path)
+    assert len(export_module.read_run(run).trajectory) == FRAMES
+    for index, name in ((FRAMES // 2, "rgb"), (3, "depth")):
+        image = getattr(open_sequence(tmp_path / "room"), f"{name}_paths")[index]
+        saved = image.read_bytes()
+        pixels = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+        assert cv2.imwrite(str(image), pixels[::-1])  # upside down: the same size, other pixels
+        line = _refused([run, "--format", "colmap", "-o", tmp_path / "out"], tmp_path)
+        assert line.startswith(f"error: {tmp_path / 'room'}: not the frames the run read (")
+        assert line.endswith("run reconstruct again on the folder as it is now") and not (tmp_path / "out").exists()
+        assert (image.name in line) == (index == FRAMES // 2), line  # hashed by name; the others by their stats
+        image.write_bytes(saved)
 
 
 def test_an_export_that_fails_midway_leaves_nothing(run_dir, sequence_dir, tmp_path, monkeypatch):

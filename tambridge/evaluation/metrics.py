@@ -173,7 +173,9 @@ class RunMetrics:
     stage: the stages before the evaluation). Memory: peak resident MiB at the end and after tracking.
     ``warnings``: how many the run logged. ``trajectory``: None without ground truth or where it could not be
     compared, ``trajectory_unavailable`` then says why (None with a trajectory); ``map``: None with the mapper off.
-    ``world``: the frame of the exported files (None only in metrics not made by a run).
+    ``world``: the frame of the exported files (None only in metrics not made by a run). ``sequence_fingerprint``:
+    what identifies the frames the run read (:func:`~tambridge.checkpoint.sequence_fingerprint`), which
+    ``tambridge export`` checks the folder against (None only in metrics not made by a run).
     """
 
     sequence: str
@@ -199,6 +201,7 @@ class RunMetrics:
     map: MapMetrics | None = dataclasses.field(default=None, metadata=IN_PARENT)
     device: DeviceMetrics = dataclasses.field(metadata=IN_PARENT)
     world: WorldMetrics | None = dataclasses.field(default=None, metadata=OMITTED_WHEN_NONE)
+    sequence_fingerprint: dict | None = dataclasses.field(default=None, metadata=OMITTED_WHEN_NONE)
 
 
 def metrics_json(metrics: RunMetrics) -> dict:
