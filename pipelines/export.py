@@ -138,7 +138,7 @@ def read_run(run_dir: Path) -> RunRecord:
         raise ExportError(f"{trajectory_path}: {len(trajectory)} poses do not match the {len(sequence)} frames of {folder} "
                           "read with config.yaml's input settings; the sequence changed since the run")
     if metrics.sequence_fingerprint is not None:
-        # The folder is metrics.json's own "sequence"; what matters here is that it still holds the frames the run read.
+        # The folder is metrics.json's "sequence"; what matters here is that it still holds the frames the run read.
         current = sequence_fingerprint(sequence)
         differences = sequence_differences({**metrics.sequence_fingerprint, "folder": current["folder"]}, current)
         if differences:

@@ -47,6 +47,8 @@ DOCUMENT_ARRAY = "document"
 """The archive member holding the JSON document (UTF-8 bytes as a uint8 array)."""
 IGNORED_CONFIG_SECTIONS = ("checkpoint",)
 """Config sections a resumed run may change: how often it checkpoints does not change its results."""
+ORB_KEYS = "frontend.orb."
+"""Where the config keeps the ORB settings, which a run records as adapted to the image size (config.yaml)."""
 SEQUENCE_INDEX_FILES = ("rgb.txt", "depth.txt", "groundtruth.txt")
 """The files of a sequence folder that say which frames it has (:func:`tambridge.io.tum.open_sequence` reads them)."""
 
@@ -322,8 +324,10 @@ def check_resumable(path: Path, checkpoint: Checkpoint, config: dict, sequence: 
     if differing:
         shown = ", ".join(f"{key}: {saved.get(key, '<absent>')!r} in the checkpoint, {current.get(key, '<absent>')!r} now"
                           for key in differing[:5])
+        # Both sides are the run's config.yaml values: ORB's counts and pixel sizes there are adapted to the image.
+        adapted = any(key.startswith(ORB_KEYS) for key in differing[:5]) * "; ORB values as adapted to the image size"
         raise CheckpointError(f"{path}: the checkpoint was written with another config ({shown}"
-                              f"{', ...' if len(differing) > 5 else ''}); resume with the same options "
+                              f"{', ...' if len(differing) > 5 else ''}{adapted}); resume with the same options "
                               f"(see config.yaml beside it) or {START_OVER}")
     differences = sequence_differences(checkpoint.sequence, sequence)
     if differences:

@@ -37,7 +37,7 @@ from tambridge.checkpoint import (
     sequence_fingerprint,
     state_types,
 )
-from tambridge.config import load_config, to_dict
+from tambridge.config import config_for_camera, load_config, to_dict
 from tambridge.evaluation.metrics import read_metrics
 from tambridge.evaluation.trajectory import evaluate_trajectory
 from tambridge.frontend.open3d.frontend import Open3dFrontend
@@ -130,6 +130,12 @@ def test_resume_refuses_another_config_or_sequence(synthetic_sequence_dir, tmp_p
     with pytest.raises(CheckpointError, match=r"checkpoint\.npz: .*another config \(mapper\.iterations: 30 in the checkpoint, 5 now"):
         check_resumable(path, _checkpoint(config, fingerprint), to_dict(load_config(None, ["mapper.iterations=5"])),
                         fingerprint)
+    # ORB's values are compared as the run records them, adapted to the image: the refusal says so.
+    orb = config_for_camera(load_config(None, ["frontend.orb.n_features=1000"]), sequence.camera)
+    with pytest.raises(CheckpointError, match=r"frontend\.orb\.n_features: 750 in the checkpoint, 500 now; ORB values as "
+                                              r"adapted to the image size\); resume with the same options"):
+        check_resumable(path, _checkpoint(to_dict(config_for_camera(load_config(None, []), sequence.camera)), fingerprint),
+                        to_dict(orb), fingerprint)
     shorter = open_sequence(synthetic_sequence_dir, max_frames=20)
     with pytest.raises(CheckpointError, match="another sequence"):
         check_resumable(path, _checkpoint(config, fingerprint), config,
