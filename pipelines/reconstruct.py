@@ -58,6 +58,9 @@ logger = logging.getLogger("tambridge.pipelines.reconstruct")
 RUN_FILES = ("config.yaml", "run.log", "trajectory.txt", "keyframes.txt", "sparse_map.npz", "splats.ply", "mesh.ply",
              *(f"report/{name}" for name in REPORT_FILES), CHECKPOINT_FOLDER + "/" + CHECKPOINT_NAME, "metrics.json")
 """Every file a run may write, relative to its output folder (its manifest lists them)."""
+MANY_UNPAIRED_SHARE = 0.05
+"""A share of rgb.txt's colour images without a depth image above which the run warns (on the console) rather than
+only logs it."""
 
 
 @dataclasses.dataclass
@@ -139,8 +142,12 @@ def reconstruct(
         logger.info("reconstructing %s into %s: %d frames, camera %s", sequence.folder, output_dir, len(sequence),
                     sequence.camera)
         if sequence.colour_frames_without_depth:
-            logger.info("%d colour images of rgb.txt have no depth image within %g s: left out",
-                        sequence.colour_frames_without_depth, MAX_ASSOCIATION_DIFFERENCE_S)
+            # A recording leaves out a few (TUM fr1/xyz 6 of 798); many say that depth.txt lacks frames.
+            many = sequence.colour_frames_without_depth > MANY_UNPAIRED_SHARE * sequence.colour_images_listed
+            logger.log(logging.WARNING if many else logging.INFO,
+                       "%d of the %d colour images of rgb.txt have no depth image within %g s: left out%s",
+                       sequence.colour_frames_without_depth, sequence.colour_images_listed,
+                       MAX_ASSOCIATION_DIFFERENCE_S, "; check depth.txt" if many else "")
         atomic_write_text(output_dir / "config.yaml", to_yaml(config))
         frontend = make_frontend(config.frontend, sequence.camera)
         mapping = MappingStage(sequence, config.mapper, config.bridge, run_log, device, config.seed,
@@ -372,6 +379,7 @@ def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResul
         frames_relocalised=tracking.frames_relocalised,
         frames_tracked_by_depth=tracking.frames_tracked_by_depth,
         frames_without_depth=len(counters.frames_without_depth),
+        colour_images_without_depth=sequence.colour_frames_without_depth,
         loops_closed=tracking.loops_closed,
         keyframes_culled=tracking.keyframes_culled,
         frontend_seconds_per_stage=tracking.timings_s,

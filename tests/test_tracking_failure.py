@@ -72,3 +72,22 @@ def test_run_counts_lost_frames_and_recovers(synthetic_sequence_dir, tmp_path):
     errors_m = evaluate_trajectory(damaged.trajectory, ground_truth).ate_errors_m
     assert len(errors_m) == len(damaged.trajectory.timestamps_s)
     assert errors_m[sorted(lost)].max() < 0.03, errors_m[sorted(lost)]
+
+
+def test_colour_images_without_depth_are_counted_and_many_of_them_warned_of(synthetic_sequence_dir, tmp_path):
+    """A depth.txt cut short: the last 20 colour images have no depth image within 20 ms. The run leaves them out,
+    says so on the console and counts them in metrics.json."""
+    folder = tmp_path / "short_depth"
+    shutil.copytree(synthetic_sequence_dir, folder)
+    lines = (folder / "depth.txt").read_text().splitlines()
+    listed = [line for line in lines if not line.startswith("#")]
+    (folder / "depth.txt").write_text("\n".join([line for line in lines if line.startswith("#")] + listed[:10]) + "\n")
+    config = load_config(None, [*OPTIONS, "input.max_frames=3"])
+    result = reconstruct(folder, tmp_path / "out", config, progress=False)
+    assert result.metrics.colour_images_without_depth == len(listed) - 10 == 20
+    log = (tmp_path / "out" / "run.log").read_text()
+    assert ("WARNING tambridge.pipelines.reconstruct: 20 of the 30 colour images of rgb.txt have no depth image within "
+            "0.02 s: left out; check depth.txt") in log
+    clean = reconstruct(synthetic_sequence_dir, tmp_path / "clean", config, progress=False)
+    assert clean.metrics.colour_images_without_depth == 0
+    assert "colour images of rgb.txt" not in (tmp_path / "clean" / "run.log").read_text()

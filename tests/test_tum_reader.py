@@ -178,13 +178,28 @@ def test_unknown_camera_without_camera_file(tmp_path):
         open_sequence(tmp_path / "mycam")
 
 
-def test_image_size_mismatch_mid_sequence(tmp_path):
+@pytest.mark.parametrize("name, image, message", [
+    ("rgb/2.0.png", np.zeros((5, 8, 3), np.uint8),
+     r"rgb/2\.0\.png: image is 8x5 but the camera is 8x6; fix width/height in camera\.yaml \(--camera\), or this image "
+     r"if the sequence's others are 8x6$"),
+    ("rgb/2.0.jpg", np.zeros((6, 9, 3), np.uint8), r"rgb/2\.0\.jpg: image is 9x6 but the camera is 8x6"),
+    ("depth/2.005.png", np.full((6, 8), 100, np.uint8),
+     r"depth/2\.005\.png: depth must be a single-channel 16-bit PNG, got an 8-bit grey image; 8-bit or colour depth "
+     r"loses the range \(re-export depth as uint16\)$"),
+    ("depth/2.005.png", np.full((6, 8, 3), 10000, np.uint16), r"depth/2\.005\.png: depth must be a single-channel 16-bit PNG, got"),
+    ("depth/2.005.png", np.full((5, 8), 10000, np.uint16),
+     r"depth/2\.005\.png: depth is 8x5 but its colour image 2\.0\.png is 8x6; colour and depth must be registered$"),
+])
+def test_an_odd_image_after_the_first_frame_is_refused_on_opening(tmp_path, name, image, message):
+    """Every frame's sizes and depth format come from the images' headers before a run starts, not when it reaches
+    them (the first frame is read whole)."""
     _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
-    cv2.imwrite(str(tmp_path / "seq" / "rgb" / "2.0.png"), np.zeros((5, 8, 3), np.uint8))
-    sequence = open_sequence(tmp_path / "seq")
-    with pytest.raises(SequenceFormatError, match=r"2\.0\.png: image is 8x5 but the camera is 8x6; fix width/height in "
-                                                  r"camera\.yaml \(--camera\), or this image if the sequence's others are 8x6$"):
-        sequence[1]
+    folder = tmp_path / "seq"
+    cv2.imwrite(str(folder / name), image)
+    if name.endswith(".jpg"):
+        (folder / "rgb.txt").write_text((folder / "rgb.txt").read_text().replace("rgb/2.0.png", name))
+    with pytest.raises(SequenceFormatError, match=message):
+        open_sequence(folder)
 
 
 def test_garbage_index_line_names_the_line(tmp_path):

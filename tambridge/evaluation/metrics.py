@@ -167,8 +167,9 @@ class RunMetrics:
     """A finished run's figures (``metrics.json``).
 
     ``sequence``: the folder given; ``frames``, ``keyframes``: counts; ``frontend``: its kind; the ``frames_*``,
-    ``loops_closed`` and ``keyframes_culled`` counts come from the frontend (``frames_without_depth`` from the
-    run). Seconds: ``frontend_seconds_per_stage`` inside the frontend, ``seconds_per_stage`` of the run (with the
+    ``loops_closed`` and ``keyframes_culled`` counts come from the frontend (``frames_without_depth``, frames whose
+    depth image holds no valid pixel, from the run); ``colour_images_without_depth``: the colour images of rgb.txt
+    left out for want of a depth image within 20 ms (all of rgb.txt, before stride and max_frames). Seconds: ``frontend_seconds_per_stage`` inside the frontend, ``seconds_per_stage`` of the run (with the
     evaluation), ``seconds_total`` end to end (without the evaluation), ``fps_*`` frames over those seconds (per
     stage: the stages before the evaluation). Memory: peak resident MiB at the end and after tracking.
     ``warnings``: how many the run logged. ``trajectory``: None without ground truth or where it could not be
@@ -186,6 +187,7 @@ class RunMetrics:
     frames_relocalised: int
     frames_tracked_by_depth: int = 0
     frames_without_depth: int
+    colour_images_without_depth: int = 0
     loops_closed: int
     keyframes_culled: int
     frontend_seconds_per_stage: dict[str, float]

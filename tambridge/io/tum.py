@@ -12,6 +12,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import PIL.Image
 
 from tambridge.camera import Camera, RgbdSensor, find_sensor
 from tambridge.errors import SequenceFormatError
@@ -157,10 +158,14 @@ class RgbdSequence:
         gt_rgb_paths: list[Path] | None = None,
         depth_timestamps_s: np.ndarray | None = None,
         colour_frames_without_depth: int = 0,
+        colour_images_listed: int | None = None,
     ) -> None:
         self.folder = folder
-        # Colour images of rgb.txt that no depth image lies near (MAX_ASSOCIATION_DIFFERENCE_S): left out.
+        # Colour images of rgb.txt that no depth image lies near (MAX_ASSOCIATION_DIFFERENCE_S): left out; of
+        # colour_images_listed in rgb.txt (before stride and max_frames).
         self.colour_frames_without_depth = colour_frames_without_depth
+        self.colour_images_listed = len(rgb_paths) + colour_frames_without_depth if colour_images_listed is None \
+            else colour_images_listed
         self.sensor = sensor
         self.rgb_paths = rgb_paths
         # Sharp ground-truth colour images, one per frame (``gt_rgb/``), or None: see :meth:`sharp_rgb`.
@@ -221,18 +226,10 @@ class RgbdSequence:
     def _colour_in_frame(self, rgb: np.ndarray, rgb_path: Path, depth_m: np.ndarray | None, depth_path: Path) -> np.ndarray:
         """Colour ``rgb`` read from ``rgb_path`` as frames carry it: resampled into the depth camera (with the raw
         ``depth_m``, needed only then) or undistorted; sizes checked against the depth image of ``depth_path``."""
+        if depth_m is not None:
+            self._check_depth_size(depth_path, depth_m.shape[::-1], rgb_path, rgb.shape[1::-1])
         if self._colour_to_depth is not None:
-            if depth_m.shape != (self.camera.height, self.camera.width):
-                raise SequenceFormatError(
-                    f"{depth_path}: depth is {depth_m.shape[1]}x{depth_m.shape[0]} but the depth camera is "
-                    f"{self.camera.width}x{self.camera.height}; fix width/height in camera.yaml (--camera)"
-                )
             rgb = self._colour_to_depth.colour_in_depth_camera(rgb, depth_m)
-        elif depth_m is not None and depth_m.shape != rgb.shape[:2]:
-            raise SequenceFormatError(
-                f"{depth_path}: depth is {depth_m.shape[1]}x{depth_m.shape[0]} but its colour image "
-                f"{rgb_path.name} is {rgb.shape[1]}x{rgb.shape[0]}; colour and depth must be registered"
-            )
         if self._undistort_maps is not None:
             rgb = cv2.remap(rgb, *self._undistort_maps, cv2.INTER_LINEAR)
         return rgb
@@ -246,26 +243,58 @@ class RgbdSequence:
         image = _imread(path, cv2.IMREAD_COLOR, "rgb.txt")
         if image.dtype != np.uint8:
             raise SequenceFormatError(f"{path}: colour image must be 8-bit, got {image.dtype}")
+        self._check_colour_size(path, image.shape[1], image.shape[0])
+        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+    def _check_colour_size(self, path: Path, width: int, height: int) -> None:
+        """Raise :class:`SequenceFormatError` naming ``path`` and the keys to fix unless a ``width`` x ``height``
+        colour image fits the (colour) camera."""
         camera = self.sensor.colour_camera or self.sensor.camera
-        if image.shape[:2] != (camera.height, camera.width):
+        if (width, height) != (camera.width, camera.height):
             keys = "colour_width/colour_height" if self.sensor.colour_camera else "width/height"
             # The first frame is read before a run starts (check_first_frame): a later one that fails here is
             # most likely the odd one out.
             raise SequenceFormatError(
-                f"{path}: image is {image.shape[1]}x{image.shape[0]} but the camera is {camera.width}x{camera.height}; "
+                f"{path}: image is {width}x{height} but the camera is {camera.width}x{camera.height}; "
                 f"fix {keys} in camera.yaml (--camera), or this image if the sequence's others are "
                 f"{camera.width}x{camera.height}"
             )
-        return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+    def _check_depth_size(self, depth_path: Path, depth_size: tuple[int, int], rgb_path: Path,
+                          rgb_size: tuple[int, int]) -> None:
+        """Raise :class:`SequenceFormatError` naming ``depth_path`` unless a depth image of ``depth_size`` (width,
+        height) fits the depth camera (unregistered colour) or its colour image of ``rgb_size`` (registered)."""
+        if self._colour_to_depth is not None:
+            if depth_size != (self.camera.width, self.camera.height):
+                raise SequenceFormatError(
+                    f"{depth_path}: depth is {depth_size[0]}x{depth_size[1]} but the depth camera is "
+                    f"{self.camera.width}x{self.camera.height}; fix width/height in camera.yaml (--camera)"
+                )
+        elif depth_size != rgb_size:
+            raise SequenceFormatError(
+                f"{depth_path}: depth is {depth_size[0]}x{depth_size[1]} but its colour image {rgb_path.name} is "
+                f"{rgb_size[0]}x{rgb_size[1]}; colour and depth must be registered"
+            )
+
+    def check_frame_headers(self) -> None:
+        """Every frame's colour and depth image, from its header alone (no decoding): the colour size, the depth's
+        format (one 16-bit channel) and size, so that an odd frame anywhere fails before a run starts, naming the
+        image, not when the run reaches it. Images whose header Pillow cannot read are left to decoding."""
+        for rgb_path, depth_path in zip(self.rgb_paths, self.depth_paths):
+            rgb, depth = image_header(rgb_path), image_header(depth_path)
+            if rgb is not None:
+                self._check_colour_size(rgb_path, rgb.width, rgb.height)
+            if depth is not None:
+                if depth.mode not in SIXTEEN_BIT_GREY_MODES:
+                    raise depth_format_error(depth_path, IMAGE_MODE_WORDS.get(depth.mode, f"Pillow mode {depth.mode}"))
+                if rgb is not None:
+                    self._check_depth_size(depth_path, depth.size, rgb_path, rgb.size)
 
     def read_depth_m(self, path: Path) -> np.ndarray:
         """Depth PNG (uint16) as (H, W) float32 metres, 0 where invalid."""
         raw = _imread(path, cv2.IMREAD_UNCHANGED, "depth.txt")
         if raw.ndim != 2 or raw.dtype != np.uint16:
-            raise SequenceFormatError(
-                f"{path}: depth must be a single-channel 16-bit PNG, got {raw.dtype} with shape {raw.shape}; "
-                "8-bit or colour depth loses the range (re-export depth as uint16)"
-            )
+            raise depth_format_error(path, f"{raw.dtype} with shape {raw.shape}")
         depth_m = raw.astype(np.float32) / np.float32(self.sensor.depth_scale)
         if self.sensor.depth_invalid is not None:
             depth_m[raw == self.sensor.depth_invalid] = 0.0
@@ -298,6 +327,31 @@ def check_image_file(path: Path, listed_in: str) -> None:
         raise SequenceFormatError(f"{path}: JPEG has no end marker (truncated); re-extract the sequence")
     if start == PNG_START and PNG_END not in tail:
         raise SequenceFormatError(f"{path}: PNG has no IEND chunk (truncated); re-extract the sequence")
+
+
+SIXTEEN_BIT_GREY_MODES = ("I;16", "I;16B", "I;16L", "I")
+"""Pillow's modes of a single-channel 16-bit image, the one depth format the reader takes (Pillow before 10 opens a
+16-bit grey PNG as ``I``; another format's 32-bit ``I`` fails at decoding)."""
+IMAGE_MODE_WORDS = {"1": "a 1-bit image", "L": "an 8-bit grey image", "LA": "an 8-bit grey image with alpha",
+                    "P": "a palette image", "RGB": "a colour image", "RGBA": "a colour image with alpha",
+                    "F": "a 32-bit float image"}
+"""Pillow's image modes in words, for errors."""
+
+
+def image_header(path: Path) -> PIL.Image.Image | None:
+    """The image at ``path`` as Pillow opens it, header only (``size`` as width, height, and ``mode``); None where
+    Pillow does not know the format."""
+    try:
+        with PIL.Image.open(path) as image:
+            return image
+    except (PIL.UnidentifiedImageError, OSError):
+        return None
+
+
+def depth_format_error(path: Path, got: str) -> SequenceFormatError:
+    """The one-line error for a depth image at ``path`` that is not one 16-bit channel (``got``: what it is)."""
+    return SequenceFormatError(f"{path}: depth must be a single-channel 16-bit PNG, got {got}; 8-bit or colour depth "
+                               "loses the range (re-export depth as uint16)")
 
 
 def _imread(path: Path, flags: int, listed_in: str) -> np.ndarray:
@@ -370,10 +424,12 @@ def open_sequence(
         gt_rgb_paths=_gt_rgb_paths(folder, [rgb_list[i][1] for i, _ in pairs]),
         depth_timestamps_s=np.array([depth_stamps[j] for _, j in pairs]),
         colour_frames_without_depth=without_depth,
+        colour_images_listed=len(rgb_list),
     )
     for rgb_path, depth_path in zip(sequence.rgb_paths, sequence.depth_paths):
         check_image_file(rgb_path, "rgb.txt")
         check_image_file(depth_path, "depth.txt")
+    sequence.check_frame_headers()
     if check_depth_scale:
         check_depth_scale_plausible(sequence)
     check_first_frame(sequence)
