@@ -292,25 +292,35 @@ def sensor_from_mapping(values: dict, source: Path) -> RgbdSensor:
 
 _LIST_KEYS = frozenset(("distortion", "colour_distortion", "colour_from_depth"))
 """Camera keys that take a list of numbers (colour_from_depth: rows of them); every other key takes one number."""
+_PIXEL_COUNT_KEYS = frozenset(("width", "height", "colour_width", "colour_height"))
+"""Camera keys that take a whole number (of pixels)."""
 
 
 def _check_numbers(values: dict, source: Path) -> None:
-    """Refuse a camera key that is not a finite number (for :data:`_LIST_KEYS`, numbers), naming the key; null is
-    a key left unset."""
+    """Refuse a camera key that is not a finite number (for :data:`_LIST_KEYS`, numbers; for
+    :data:`_PIXEL_COUNT_KEYS`, a whole one), naming the key; null is a key left unset, an empty list is refused."""
     for key, value in values.items():
         if value is None:
             continue
+        expected = "a list of numbers" if key in _LIST_KEYS else "a number"
         if key in _LIST_KEYS and not isinstance(value, (list, tuple)):
             raise CameraConfigError(f"{source}: {key} is {value!r}; expected a list of numbers")
+        if key in _LIST_KEYS and len(value) == 0:
+            raise CameraConfigError(f"{source}: {key} is an empty list; give its numbers, or leave the key out")
         numbers = np.ravel(np.asarray(value, dtype=object)) if key in _LIST_KEYS else [value]
         for number in numbers:
+            # YAML reads yes, no, true and false as booleans, which float() would take as 1 and 0.
+            if isinstance(number, bool):
+                raise CameraConfigError(f"{source}: {key} is {value!r} (YAML reads {str(number).lower()} as a "
+                                        f"boolean); expected {expected}")
             try:
                 as_float = float(number)
             except (TypeError, ValueError):
-                expected = "a list of numbers" if key in _LIST_KEYS else "a number"
                 raise CameraConfigError(f"{source}: {key} is {value!r}; expected {expected}") from None
             if not np.isfinite(as_float):
                 raise CameraConfigError(f"{source}: {key} is {number!r}; camera values must be finite numbers")
+            if key in _PIXEL_COUNT_KEYS and not as_float.is_integer():
+                raise CameraConfigError(f"{source}: {key} is {value!r}; expected a whole number of pixels")
 
 
 def _camera_from_values(values: dict, prefix: str) -> Camera:

@@ -11,6 +11,10 @@ from tambridge.errors import TrajectoryFormatError
 from tambridge.files import atomic_write_text, read_text_file
 from tambridge.geometry import pose_from_tum, poses_along, tum_from_pose
 
+QUATERNION_NORM_TOLERANCE = 0.01
+"""How far from 1 a file's quaternion norm may lie: rounding to TUM's 4 decimals moves it by about 2e-4; further off,
+the columns are most likely not ``qx qy qz qw``."""
+
 
 @dataclasses.dataclass
 class Trajectory:
@@ -69,8 +73,9 @@ class Trajectory:
 
 
 def parse_tum_trajectory(text: str, source: str) -> Trajectory:
-    """Parse TUM trajectory text; ``source`` names the file in errors. Lines starting with ``#`` are comments."""
-    timestamps, poses = [], []
+    """Parse TUM trajectory text; ``source`` names the file in errors. Lines starting with ``#`` are comments; the
+    poses are sorted by time, and a time listed twice must repeat its pose (the repeat is dropped)."""
+    timestamps, values_of_lines, numbers = [], [], []
     for number, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -80,34 +85,50 @@ def parse_tum_trajectory(text: str, source: str) -> Trajectory:
             raise TrajectoryFormatError(f"{source} line {number}: expected 8 columns 'timestamp tx ty tz qx qy qz qw', got {len(parts)}")
         try:
             values = np.array([float(p) for p in parts])
-        except ValueError as error:
-            raise TrajectoryFormatError(f"{source} line {number}: {error}") from error
+        except ValueError:
+            word = next(p for p in parts if not _is_number(p))
+            raise TrajectoryFormatError(f"{source} line {number}: {word!r} is not a number; a TUM line holds 8 numbers "
+                                        "'timestamp tx ty tz qx qy qz qw'") from None
         if not np.all(np.isfinite(values)):
-            raise TrajectoryFormatError(f"{source} line {number}: non-finite value")
+            raise TrajectoryFormatError(f"{source} line {number}: non-finite value (nan or inf); fix or remove the line")
         quaternion = values[4:8]
         with np.errstate(over="ignore"):
             norm = np.linalg.norm(quaternion)
-        if not np.isfinite(norm):  # components near 1e200: their squares overflow, so scale them down first
-            quaternion = quaternion / np.abs(quaternion).max()
-            norm = np.linalg.norm(quaternion)
-        if norm < 1e-6:
-            raise TrajectoryFormatError(f"{source} line {number}: zero quaternion")
+        if not np.isfinite(norm) or abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            shown = "too large to square" if not np.isfinite(norm) else f"{norm:.4g}"
+            raise TrajectoryFormatError(f"{source} line {number}: quaternion qx qy qz qw has norm {shown}, not 1; the "
+                                        "columns must be 'timestamp tx ty tz qx qy qz qw' (a unit quaternion last)")
         timestamps.append(values[0])
-        poses.append(pose_from_tum(values[1:4], quaternion / norm))
+        values_of_lines.append(values)
+        numbers.append(number)
     if not timestamps:
         raise TrajectoryFormatError(f"{source}: no poses (empty file or only comments)")
-    timestamps = np.array(timestamps)
-    if np.any(np.diff(timestamps) <= 0):
-        order = np.argsort(timestamps, kind="stable")
-        timestamps = timestamps[order]
-        poses = [poses[i] for i in order]
-        keep = np.concatenate([[True], np.diff(timestamps) > 0])
-        timestamps, poses = timestamps[keep], [p for p, k in zip(poses, keep) if k]
-    return Trajectory(timestamps, np.stack(poses))
+    order = np.argsort(timestamps, kind="stable")
+    timestamps = np.array(timestamps)[order]
+    values_of_lines = np.array(values_of_lines)[order]
+    numbers = np.array(numbers)[order]
+    repeated = np.flatnonzero(np.diff(timestamps) == 0) + 1
+    for index in repeated:
+        if not np.array_equal(values_of_lines[index], values_of_lines[index - 1]):
+            first, second = sorted((numbers[index - 1], numbers[index]))
+            raise TrajectoryFormatError(f"{source} line {second}: time {float(timestamps[index])!r} is already on line {first} "
+                                        "with another pose; list each time once")
+    keep = np.ones(len(timestamps), bool)
+    keep[repeated] = False
+    poses = [pose_from_tum(values[1:4], values[4:8] / np.linalg.norm(values[4:8])) for values in values_of_lines[keep]]
+    return Trajectory(timestamps[keep], np.stack(poses))
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def read_tum_trajectory(path: Path) -> Trajectory:
-    """Read a TUM trajectory file (sorted by time; duplicate stamps keep their first pose)."""
+    """Read a TUM trajectory file (:func:`parse_tum_trajectory`)."""
     path = Path(path)
     if not path.is_file():
         raise TrajectoryFormatError(f"{path}: trajectory file not found")

@@ -142,6 +142,11 @@ def test_index_files_give_the_listed_frames_or_an_error_naming_file_and_line(ima
 
 
 pose_line = st.lists(st.floats(-10.0, 10.0, allow_subnormal=False).map(repr), min_size=8, max_size=8).map(" ".join)
+unit_pose_line = st.tuples(
+    st.sampled_from(["1", "2", "2.0", "3"]),  # times that repeat
+    st.lists(st.sampled_from([0.0, -0.0, 1.5, -2.0]), min_size=3, max_size=3),
+    st.sampled_from([(0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.7071, 0.7071), (0.5, -0.5, 0.5, 0.5), (0.6, 0.0, 0.0, 0.8)]),
+).map(lambda parts: " ".join([parts[0], *map(repr, parts[1]), *map(repr, parts[2])]))
 
 
 def first_bad_trajectory_line(text: str, source: str) -> tuple[str, list[np.ndarray]]:
@@ -158,23 +163,34 @@ def first_bad_trajectory_line(text: str, source: str) -> tuple[str, list[np.ndar
         try:
             values = np.array([float(part) for part in parts])
         except ValueError:
-            return where + "|could not convert string to float", []
+            return where + "|is not a number", []
         if not np.isfinite(values).all():
             return where + "|non-finite value", []
         largest = np.abs(values[4:]).max()  # |q| = largest * |q / largest|: no overflow for huge components
-        if largest == 0.0 or largest * np.linalg.norm(values[4:] / largest) < 1e-6:
-            return where + "|zero quaternion", []
-        rows.append(values)
+        norm = largest * np.linalg.norm(values[4:] / largest) if largest > 0.0 else 0.0
+        if not abs(norm - 1.0) <= 0.01:
+            return where + "|, not 1; the columns must be", []
+        rows.append((number, values))
     if not rows:
         return f"{source}: |no poses", []
-    return "", rows
+    # A time listed twice must repeat its pose: the earliest time with a line unlike the one before it with that time.
+    before, conflicts = {}, []
+    for number, values in rows:
+        if values[0] in before and not np.array_equal(before[values[0]][1], values):
+            conflicts.append((values[0], before[values[0]][0], number))
+        before[values[0]] = (number, values)
+    if conflicts:
+        _, first, second = min(conflicts)
+        return f"{source} line {second}: |is already on line {first} with another pose", []
+    return "", [values for _, values in rows]
 
 
 @settings(max_examples=300, deadline=None)
-@given(lines=st.lists(st.one_of(line, pose_line), max_size=6))
+@given(lines=st.lists(st.one_of(line, pose_line, unit_pose_line), max_size=6))
 @example(lines=["1 0 0 0 0 0 0 0"])  # zero quaternion
-@example(lines=["1 0 0 0 1e200 1e200 0 0"])  # a quaternion whose squared norm overflows: still a direction
-@example(lines=["2 1 2 3 0 0 0 1", "1 4 5 6 0 0 1 0", "2 7 8 9 1 0 0 0"])  # out of order, one stamp twice
+@example(lines=["1 0 0 0 1e200 1e200 0 0"])  # a quaternion whose squared norm overflows
+@example(lines=["2 1 2 3 0 0 0 1", "1 4 5 6 0 0 1 0", "2 7 8 9 1 0 0 0"])  # out of order, one time twice, other poses
+@example(lines=["2 1 2 3 0 0 0 1", "1 4 5 6 0 0 1 0", "2.0 1 2 3 0 0 0 1.0"])  # one time twice with its pose
 def test_trajectory_text_gives_the_sorted_poses_or_an_error_naming_file_and_line(lines):
     text = "\n".join(lines)
     expected_error, rows = first_bad_trajectory_line(text, "gt.txt")
@@ -186,7 +202,7 @@ def test_trajectory_text_gives_the_sorted_poses_or_an_error_naming_file_and_line
         assert message.startswith(start) and phrase in message and "\n" not in message, (message, expected_error)
         return
     trajectory = parse_tum_trajectory(text, "gt.txt")
-    # Sorted by time; of poses with the same stamp the first in the file is kept.
+    # Sorted by time; a time listed twice (with its pose) once.
     kept = {}
     for values in rows:
         kept.setdefault(values[0], values)

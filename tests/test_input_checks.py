@@ -66,7 +66,9 @@ def test_nan_or_inf_in_a_camera_key_is_refused_by_name(tmp_path, key, value):
 
 
 @pytest.mark.parametrize("key, value, expected", [("fx", "[1, 2]", "a number"), ("depth_scale", "millimetres", "a number"),
-                                                  ("distortion", "[0.1, fast, 0, 0, 0]", "a list of numbers")])
+                                                  ("distortion", "[0.1, fast, 0, 0, 0]", "a list of numbers"),
+                                                  ("fx", "yes", "a number"), ("distortion", "[0, 0, 0, 0, true]", "a list of numbers"),
+                                                  ("width", "160.5", "a whole number of pixels")])
 def test_a_camera_key_that_is_not_a_number_is_refused_by_name(tmp_path, key, value, expected):
     path = tmp_path / "camera.yaml"
     path.write_text(yaml.safe_dump({**CAMERA, key: 0}).replace(f"{key}: 0", f"{key}: {value}"))
@@ -76,6 +78,7 @@ def test_a_camera_key_that_is_not_a_number_is_refused_by_name(tmp_path, key, val
 
 @pytest.mark.parametrize("extra, message", [
     ({"distortion": 0.1}, "distortion is 0.1; expected a list of numbers"),
+    ({"distortion": []}, "distortion is an empty list; give its numbers, or leave the key out"),
     ({"distortion": [0.1, 0, 0, 0, 0], "d0": 0.2}, "gives distortion and d0; give the coefficients one way"),
     ({"depth_invalid": 1.5}, "depth_invalid is 1.5; expected the raw 16-bit value (an integer 0-65535)"),
     ({"depth_invalid": 70000}, "depth_invalid is 70000; expected the raw 16-bit value"),

@@ -72,10 +72,15 @@ def test_association_skips_poses_without_a_partner():
     "text, message",
     [
         ("1.0 0 0 0 0 0 0\n", "line 1: expected 8 columns"),
-        ("1.0 0 0 0 0 0 0 x\n", "line 1: could not convert string to float"),
+        ("1.0 0 0 0 0 0 0 x\n", "line 1: 'x' is not a number; a TUM line holds 8 numbers"),
         ("# only a comment\n", "no poses"),
-        ("1.0 0 0 0 0 0 0 0\n", "zero quaternion"),
-        ("1.0 nan 0 0 0 0 0 1\n", "non-finite"),
+        ("1.0 0 0 0 0 0 0 0\n", "line 1: quaternion qx qy qz qw has norm 0, not 1; the columns must be"),
+        # Columns swapped (qw first, then a position): the norm gives it away.
+        ("1.0 0 0 0 1 0.5 0.2 0.3\n", "line 1: quaternion qx qy qz qw has norm 1.175, not 1"),
+        ("1.0 0 0 0 1e300 1e300 0 0\n", "line 1: quaternion qx qy qz qw has norm too large to square, not 1"),
+        ("1.0 nan 0 0 0 0 0 1\n", "line 1: non-finite value \\(nan or inf\\); fix or remove the line"),
+        ("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n1.0 0 0 0.5 0 0 0 1\n",
+         "line 3: time 1.0 is already on line 1 with another pose; list each time once"),
     ],
 )
 def test_malformed_trajectory_files_name_the_line(tmp_path, text, message):
@@ -83,6 +88,15 @@ def test_malformed_trajectory_files_name_the_line(tmp_path, text, message):
     path.write_text(text)
     with pytest.raises(TrajectoryFormatError, match=message):
         read_tum_trajectory(path)
+
+
+def test_a_time_repeated_with_its_pose_is_read_once_and_rounded_quaternions_are_normalised(tmp_path):
+    path = tmp_path / "repeated.txt"
+    # TUM's 4-decimal quaternions are unit to about 2e-4 only; 0.7071 twice has norm 0.99999.
+    path.write_text("2.0 1 2 3 0 0 0.7071 0.7071\n1.0 0 0 0 0 0 0 1\n2.0 1 2 3 0 0 0.7071 0.7071\n")
+    trajectory = read_tum_trajectory(path)
+    np.testing.assert_array_equal(trajectory.timestamps_s, [1.0, 2.0])
+    np.testing.assert_allclose(trajectory.world_from_camera[1][:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
 
 
 def test_nearest_poses_match_a_search_over_every_pose():
