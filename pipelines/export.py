@@ -126,6 +126,9 @@ def read_run(run_dir: Path) -> RunRecord:
     if not folder.is_dir():
         raise ExportError(f"{folder}: the run's sequence folder is gone (moved or deleted); the export needs its "
                           f"images: put it back there")
+    if not (run_dir / "config.yaml").is_file():
+        raise ExportError(f"{run_dir / 'config.yaml'}: not found; the run folder is incomplete (it says how the sequence "
+                          "was read): run reconstruct again")
     config = load_config(run_dir / "config.yaml")
     camera_file = config.input.camera_file
     if camera_file is not None and not Path(camera_file).is_absolute() and not Path(camera_file).is_file():

@@ -130,6 +130,9 @@ def _is_number(text: str) -> bool:
 def read_tum_trajectory(path: Path) -> Trajectory:
     """Read a TUM trajectory file (:func:`parse_tum_trajectory`)."""
     path = Path(path)
+    if path.is_dir():
+        inside = f" ({path / 'trajectory.txt'}, say)" if (path / "trajectory.txt").is_file() else ""
+        raise TrajectoryFormatError(f"{path}: is a folder; pass a TUM trajectory file{inside}")
     if not path.is_file():
         raise TrajectoryFormatError(f"{path}: trajectory file not found")
     return parse_tum_trajectory(read_text_file(path, TrajectoryFormatError), str(path))

@@ -423,6 +423,13 @@ def test_bad_input_is_refused_in_one_line_leaving_nothing(run_dir, sequence_dir,
     line = _refused([run_dir, "--format", "colmap", "-o", taken], tmp_path)
     assert "not empty" in line and [p.name for p in taken.iterdir()] == ["keep.txt"]
 
+    no_config = tmp_path / "no_config"
+    shutil.copytree(run_dir, no_config)
+    (no_config / "config.yaml").unlink()
+    line = _refused([no_config, "--format", "colmap", "-o", tmp_path / "d"], tmp_path)
+    assert line == f"error: {no_config / 'config.yaml'}: not found; the run folder is incomplete (it says how the " \
+                   "sequence was read): run reconstruct again" and not (tmp_path / "d").exists()
+
     line = _refused([run_dir, "--format", "colmap", "-o", tmp_path / "c", "--frames", "every:x"], tmp_path)
     assert "--frames" in line and not (tmp_path / "c").exists()
 

@@ -90,6 +90,14 @@ def test_malformed_trajectory_files_name_the_line(tmp_path, text, message):
         read_tum_trajectory(path)
 
 
+def test_a_folder_given_as_a_trajectory_is_named_with_the_file_inside(tmp_path):
+    with pytest.raises(TrajectoryFormatError, match=rf"^{tmp_path}: is a folder; pass a TUM trajectory file$"):
+        read_tum_trajectory(tmp_path)
+    (tmp_path / "trajectory.txt").write_text("1.0 0 0 0 0 0 0 1\n")
+    with pytest.raises(TrajectoryFormatError, match=rf"is a folder; pass a TUM trajectory file \({tmp_path}/trajectory\.txt, say\)$"):
+        read_tum_trajectory(tmp_path)
+
+
 def test_a_time_repeated_with_its_pose_is_read_once_and_rounded_quaternions_are_normalised(tmp_path):
     path = tmp_path / "repeated.txt"
     # TUM's 4-decimal quaternions are unit to about 2e-4 only; 0.7071 twice has norm 0.99999.

@@ -1,4 +1,6 @@
 
+import subprocess
+
 import cv2
 import numpy as np
 import pytest
@@ -170,6 +172,24 @@ def test_folder_that_is_not_a_sequence(tmp_path):
         open_sequence(tmp_path / "photos")
     with pytest.raises(SequenceFormatError, match="not a folder"):
         open_sequence(tmp_path / "missing")
+
+
+def test_an_associations_file_alone_is_named_with_commands_that_make_the_index_files(tmp_path):
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
+    folder = tmp_path / "seq"
+    expected = open_sequence(folder)
+    rows = zip(*(open(folder / name).read().splitlines()[1:] for name in ("rgb.txt", "depth.txt")))
+    (folder / "associations.txt").write_text("".join(f"{rgb} {depth}\n" for rgb, depth in rows))
+    (folder / "rgb.txt").unlink()
+    (folder / "depth.txt").unlink()
+    with pytest.raises(SequenceFormatError, match="has associations.txt but no rgb.txt or depth.txt; write them") as refused:
+        open_sequence(folder)
+    # The message's own commands make a sequence of the same frames.
+    commands = str(refused.value).split("lines: ", 1)[1].rstrip(")")
+    subprocess.run(commands, shell=True, cwd=folder, check=True)
+    made = open_sequence(folder)
+    np.testing.assert_array_equal(made.timestamps_s, expected.timestamps_s)
+    assert made.depth_paths == expected.depth_paths and made.rgb_paths == expected.rgb_paths
 
 
 def test_unknown_camera_without_camera_file(tmp_path):

@@ -5,6 +5,7 @@ render of the splats loaded back from the .ply (no exposure)."""
 import base64
 import dataclasses
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -108,10 +109,23 @@ def test_the_viewer_starts_at_the_runs_first_pose_and_camera(splat_run):
     assert base64.b64decode(data.split('ply_base64 = "')[1].split('"')[0]) == (splat_run / "splats.ply").read_bytes()
 
 
-def test_tambridge_report_keeps_the_viewer_the_run_wrote(splat_run, tmp_path):
+def test_tambridge_report_shows_splats_ply_as_it_is_now(splat_run, tmp_path, caplog):
+    """A user cleans the map in another tool and rebuilds the report: its viewer shows the cleaned file, from the
+    same first view; with splats.ply gone, the report has no viewer and says why."""
     from tambridge.evaluation.report import report_from_run
 
-    assert 'src="viewer/index.html"' in report_from_run(splat_run).read_text()
+    run = tmp_path / "run"
+    shutil.copytree(splat_run, run)
+    gaussians = load_ply(run / "splats.ply")
+    save_ply(run / "splats.ply", GaussianTensors(*(tensor[: len(gaussians) // 2] for tensor in dataclasses.astuple(gaussians))))
+    assert 'src="viewer/index.html"' in report_from_run(run).read_text()
+    data = (run / RUN_VIEWER_FOLDER / "splats.js").read_text()
+    assert base64.b64decode(data.split('ply_base64 = "')[1].split('"')[0]) == (run / "splats.ply").read_bytes()
+    assert read_viewer_view(run / RUN_VIEWER_FOLDER)[0] == read_viewer_view(splat_run / RUN_VIEWER_FOLDER)[0]
+    (run / "splats.ply").unlink()
+    assert "viewer/index.html" not in report_from_run(run).read_text()
+    assert f"{run / 'splats.ply'}: not found: the rebuilt report has no viewer" in caplog.text
+    # A run without a viewer (the mapper off) gets none.
     write_metrics(tmp_path / "metrics.json", _metrics())
     write_tum_trajectory(tmp_path / "trajectory.txt", read_tum_trajectory(splat_run / "trajectory.txt"))
     assert "viewer/index.html" not in report_from_run(tmp_path).read_text()

@@ -32,7 +32,7 @@ from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
 from tambridge.evaluation.trajectory import (  # noqa: E402
     WORST_WINDOW_S, TrajectoryErrors, TrajectoryEvaluationError, evaluate_trajectory, worst_error_window,
 )
-from tambridge.export.web_viewer import RUN_VIEWER_FOLDER, VIEWER_FILES, write_run_viewer  # noqa: E402
+from tambridge.export.web_viewer import RUN_VIEWER_FOLDER, VIEWER_FILES, read_viewer_view, write_run_viewer  # noqa: E402
 from tambridge.files import atomic_path, atomic_write_text  # noqa: E402
 from tambridge.images import rgb_uint8  # noqa: E402
 from tambridge.io.tum import RgbdSequence  # noqa: E402
@@ -145,7 +145,8 @@ def report_from_run(run_dir: Path) -> Path:
 
     Reads ``metrics.json`` and ``trajectory.txt``; the ground truth is the sequence's ``groundtruth.txt``; a
     COLMAP trajectory is added when ``run_dir/colmap/trajectory.txt`` exists (``tambridge colmap SEQ -o
-    RUN_DIR/colmap``).
+    RUN_DIR/colmap``). A run's viewer is written again from ``splats.ply`` as it is now (left out, with a warning,
+    where it is gone).
     """
     run_dir = Path(run_dir)
     metrics = read_metrics(run_dir / "metrics.json")
@@ -167,8 +168,15 @@ def report_from_run(run_dir: Path) -> Path:
     if metrics.trajectory is not None and not ground_truth_path.is_file():
         logger.warning("%s: not found (the sequence moved?): the rebuilt report has no trajectory section; "
                        "metrics.json keeps the run's ATE", ground_truth_path)
+    web_viewer = (run_dir / RUN_VIEWER_FOLDER / "index.html").is_file()
+    if web_viewer and (run_dir / "splats.ply").is_file():
+        # splats.ply as it is now (cleaned in another tool, say), from the viewer's first view as the run set it.
+        write_run_viewer(run_dir, read_viewer_view(run_dir / RUN_VIEWER_FOLDER)[0])
+    elif web_viewer:
+        logger.warning("%s: not found: the rebuilt report has no viewer", run_dir / "splats.ply")
+        web_viewer = False
     return write_report(run_dir / "report", metrics, errors, title=f"tambridge: {metrics.sequence}",
-                        web_viewer=(run_dir / RUN_VIEWER_FOLDER / "index.html").is_file(), keep_figures=True)
+                        web_viewer=web_viewer, keep_figures=True)
 
 
 def format_metric(value: object) -> str:

@@ -370,6 +370,12 @@ def check_sequence_folder(folder: Path) -> None:
     if not folder.is_dir():
         raise SequenceFormatError(f"{folder}: not a folder; pass a TUM RGB-D sequence folder (with rgb.txt, depth.txt)")
     if not (folder / "rgb.txt").is_file() and not (folder / "depth.txt").is_file():
+        if (folder / "associations.txt").is_file():
+            raise SequenceFormatError(
+                f"{folder}: has associations.txt but no rgb.txt or depth.txt; write them from it (for TUM's "
+                "'rgb_time rgb_file depth_time depth_file' lines: awk '!/^#/{print $1, $2}' associations.txt > rgb.txt; "
+                "awk '!/^#/{print $3, $4}' associations.txt > depth.txt)"
+            )
         raise SequenceFormatError(
             f"{folder}: not a sequence folder (no rgb.txt or depth.txt); "
             "download one with 'tambridge download fr1/desk --to DIR' or make one with 'tambridge synth DIR'"
