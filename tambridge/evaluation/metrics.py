@@ -169,9 +169,10 @@ class RunMetrics:
     ``sequence``: the folder given; ``frames``, ``keyframes``: counts; ``frontend``: its kind; the ``frames_*``,
     ``loops_closed`` and ``keyframes_culled`` counts come from the frontend (``frames_without_depth``, frames whose
     depth image holds no valid pixel, from the run); ``colour_images_without_depth``: the colour images of rgb.txt
-    left out for want of a depth image within 20 ms (all of rgb.txt, before stride and max_frames). Seconds: ``frontend_seconds_per_stage`` inside the frontend, ``seconds_per_stage`` of the run (with the
-    evaluation), ``seconds_total`` end to end (without the evaluation), ``fps_*`` frames over those seconds (per
-    stage: the stages before the evaluation). Memory: peak resident MiB at the end and after tracking.
+    left out for want of a depth image within 20 ms (all of rgb.txt, before stride and max_frames). Seconds:
+    ``frontend_seconds_per_stage`` inside the frontend, ``seconds_per_stage`` of the run (with the evaluation),
+    ``seconds_total`` end to end (without the evaluation), ``fps_*`` frames over those seconds (per stage: the stages
+    before the evaluation). Memory: peak resident MiB at the end and after tracking.
     ``warnings``: how many the run logged. ``trajectory``: None without ground truth or where it could not be
     compared, ``trajectory_unavailable`` then says why (None with a trajectory); ``map``: None with the mapper off.
     ``world``: the frame of the exported files (None only in metrics not made by a run). ``sequence_fingerprint``:

@@ -158,14 +158,13 @@ class RgbdSequence:
         gt_rgb_paths: list[Path] | None = None,
         depth_timestamps_s: np.ndarray | None = None,
         colour_frames_without_depth: int = 0,
-        colour_images_listed: int | None = None,
+        colour_images_listed: int = 0,
     ) -> None:
         self.folder = folder
         # Colour images of rgb.txt that no depth image lies near (MAX_ASSOCIATION_DIFFERENCE_S): left out; of
         # colour_images_listed in rgb.txt (before stride and max_frames).
         self.colour_frames_without_depth = colour_frames_without_depth
-        self.colour_images_listed = len(rgb_paths) + colour_frames_without_depth if colour_images_listed is None \
-            else colour_images_listed
+        self.colour_images_listed = colour_images_listed
         self.sensor = sensor
         self.rgb_paths = rgb_paths
         # Sharp ground-truth colour images, one per frame (``gt_rgb/``), or None: see :meth:`sharp_rgb`.
