@@ -211,11 +211,21 @@ def reconstruct(
 @contextlib.contextmanager
 def saying_the_run_is_unfinished(output_dir: Path, checkpoint_file: Path) -> Iterator[None]:
     """Re-raise an input error met mid-run (a frame that cannot be decoded; no frame tracked), of the same class,
-    saying what ``output_dir`` now holds and how to go on; a stop by a signal (:class:`RunStopped`) says so itself."""
+    saying what ``output_dir`` now holds and how to go on; likewise a stop by a signal that came outside the tracking
+    loop (the map's last rounds, the mesh, the evaluation: :class:`RunStopped` ``at_once``), where the loop's own
+    stops say so themselves."""
     try:
         yield
-    except RunStopped:
-        raise
+    except RunStopped as stop:
+        if not stop.at_once:
+            raise
+        checkpoint = find_checkpoint(checkpoint_file)
+        if checkpoint is None:
+            raise RunStopped(stop.signum, f"{stop}; {output_dir} holds the unfinished run, with no checkpoint: run again "
+                                          "to start over") from None
+        where = f"after frame {checkpoint.next_frame} of {checkpoint.sequence['frames']}"
+        raise RunStopped(stop.signum, f"{stop}; {output_dir} keeps the checkpoint {where}: the same command with --resume "
+                                      "continues there") from None
     except TambridgeError as error:
         go_on = "the same command replaces it once that is fixed"
         if checkpoint_file.is_file():
@@ -261,7 +271,8 @@ def track_frames(
     stops: StopRequests | None = None,
 ) -> FrontendResult:
     """Track every frame from ``start_frame`` on, in order, mapping each keyframe (bridge, then mapper) as it comes;
-    returns the frontend's final result (after loop closure and global BA).
+    returns the frontend's final result (after loop closure and global BA). With ``checkpoints``, the state after
+    the last frame is checkpointed too, before the frontend's finish, where this call tracked a frame after the first.
 
     After each frame ``counters`` count it, the mapping stage may ask the frontend for a keyframe where its map lacks
     coverage, ``live_view`` shows it and ``checkpoints`` are told of a keyframe (once it is mapped).
@@ -274,12 +285,14 @@ def track_frames(
     with FramePrefetcher(sequence, start_frame, frontend.extract if prefetch else None, read_ahead=prefetch) as prefetcher, \
             stops.deferred() if stops is not None else contextlib.nullcontext():
         frames = iter(prefetcher)
+        tracked_after_first = False
         for index in tqdm(range(start_frame, len(sequence)), total=len(sequence), initial=start_frame,
                           desc="tracking", unit="frame", disable=not progress):
             with run_log.stage("frame_reading"):
                 frame, features = next(frames)
             with run_log.stage("tracking"):
                 result = frontend.track(frame, features)
+            tracked_after_first |= result.tracked and index > 0
             if mapping is not None:
                 mapping.on_tracked(result, frame, prefetcher.sharpness.pop(frame.index, None))
             if mapping is not None and result.keyframe is not None:
@@ -304,6 +317,12 @@ def track_frames(
                     checkpoints.after_keyframe(index + 1)
             if stops is not None and stops.requested is not None:
                 stop_after_frame(stops.requested, index + 1, len(sequence), checkpoints, run_log)
+        if checkpoints is not None and tracked_after_first:
+            # What follows (global BA, the map's last rounds, mesh, evaluation) can take as long again: a stop there
+            # resumes from here rather than from the last keyframe's checkpoint. (Where no frame tracked, the run
+            # fails next: nothing is worth resuming.)
+            with run_log.stage("checkpoint"):
+                checkpoints.write(len(sequence))
     with run_log.stage("tracking"):
         return frontend.finish()
 
@@ -323,10 +342,12 @@ def stop_after_frame(signum: int, next_frame: int, frame_count: int, checkpoints
     :class:`RunStopped` saying where the run stopped and how to go on."""
     where = f"stopped by {signal_name(signum)} after frame {next_frame} of {frame_count}"
     if checkpoints is None:
-        raise RunStopped(signum, f"{where}; no checkpoint (checkpoint.every_keyframes=0): run again to start over")
+        raise RunStopped(signum, f"{where}; no checkpoint (checkpoint.every_keyframes=0): run again to start over",
+                         at_once=False)
     with run_log.stage("checkpoint"):
         checkpoints.write(next_frame)
-    raise RunStopped(signum, f"{where}; checkpoint written: the same command with --resume continues there")
+    raise RunStopped(signum, f"{where}; checkpoint written: the same command with --resume continues there",
+                     at_once=False)
 
 
 def run_checkpoint(next_frame: int, *, config: Config, fingerprint: dict, frontend: Frontend,

@@ -18,12 +18,15 @@ STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 class RunStopped(TambridgeError):
-    """A run stopped by a signal; ``exit_status`` is the shell's 128 + the signal's number (143, 130)."""
+    """A run stopped by a signal; ``exit_status`` is the shell's 128 + the signal's number (143, 130).
+    ``at_once``: raised where the signal came (its message says only that), not by a run that stopped between frames
+    and said where."""
 
-    def __init__(self, signum: int, message: str) -> None:
+    def __init__(self, signum: int, message: str, at_once: bool = True) -> None:
         super().__init__(message)
         self.signum = signum
         self.exit_status = 128 + signum
+        self.at_once = at_once
 
 
 def signal_name(signum: int) -> str:

@@ -197,6 +197,44 @@ def test_a_signal_writes_a_checkpoint_and_resume_ends_as_an_uninterrupted_run(sy
     np.testing.assert_array_equal(np.loadtxt(out / "trajectory.txt"), uninterrupted_trajectory)
 
 
+@pytest.mark.slow
+def test_a_stop_after_tracking_resumes_from_the_checkpoint_of_its_last_frame(synthetic_sequence_dir, tmp_path,
+                                                                             uninterrupted_trajectory, monkeypatch):
+    """A signal while the map is finished (global BA, the map's last rounds, mesh, evaluation) stops the run at once;
+    the checkpoint written after the last frame is tracked lets --resume finish it as if uninterrupted."""
+    import pipelines.reconstruct as pipeline
+    from tambridge.checkpoint import load_checkpoint
+    from tambridge.stop import RunStopped
+
+    finish = pipeline.MappingStage.finish
+
+    def stopped(*arguments, **options):
+        raise RunStopped(signal.SIGINT, "stopped by SIGINT")  # as the handler raises it outside the tracking loop
+
+    monkeypatch.setattr(pipeline.MappingStage, "finish", stopped)
+    out = tmp_path / "stopped"
+    result = _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", *_set(STOPPED_OPTIONS)])
+    frames = len(uninterrupted_trajectory)
+    assert (result.exit_code, result.output) == (130, f"error: stopped by SIGINT; {out} keeps the checkpoint after frame "
+                                                      f"{frames} of {frames}: the same command with --resume continues there\n")
+    assert load_checkpoint(checkpoint_path(out)).next_frame == frames and not (out / "metrics.json").exists()
+    monkeypatch.setattr(pipeline.MappingStage, "finish", finish)
+    resumed = _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--resume",
+                    *_set(STOPPED_OPTIONS)])
+    assert resumed.exit_code == 0, resumed.output
+    assert f"resuming at frame {frames} of {frames}" in (out / "run.log").read_text()
+    np.testing.assert_array_equal(np.loadtxt(out / "trajectory.txt"), uninterrupted_trajectory)
+    assert not checkpoint_path(out).parent.exists()
+
+    # Without checkpoints the run says that nothing can be resumed.
+    monkeypatch.setattr(pipeline.MappingStage, "finish", stopped)
+    off = tmp_path / "off"
+    result = _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(off), "--quiet",
+                   *_set([*STOPPED_OPTIONS, "input.max_frames=6", "checkpoint.every_keyframes=0"])])
+    assert (result.exit_code, result.output) == (130, f"error: stopped by SIGINT; {off} holds the unfinished run, with no "
+                                                      "checkpoint: run again to start over\n")
+
+
 def test_ground_truth_on_another_clock_leaves_the_results_and_says_why(synthetic_sequence_dir, tmp_path):
     sequence = tmp_path / "seq"
     shutil.copytree(synthetic_sequence_dir, sequence)
