@@ -160,6 +160,21 @@ def test_the_depth_scale_is_checked_on_the_first_frame_with_depth(tmp_path):
     assert len(open_sequence(plausible)) == 5
 
 
+def test_depth_at_65535_without_depth_invalid_is_refused_naming_the_key(tmp_path):
+    """A sensor that marks missing depth with 65535 (7-Scenes, some drivers) and a camera file without depth_invalid:
+    those pixels would be map geometry 65.5 m away (millimetres)."""
+    millimetres = {**CAMERA, "depth_scale": 1000.0}
+    frame = depth(2000)
+    frame[0, :2] = 65535  # 2 of 48 pixels
+    folder = write_sequence(tmp_path / "seq", [frame] * 2, millimetres)
+    with pytest.raises(SequenceFormatError, match=r"depth/0\.png: 4% of its pixels are 65535, the largest 16-bit value "
+                                                  r"\(65\.5 m at depth_scale 1000\); if it marks pixels without depth, "
+                                                  r"set depth_invalid: 65535 in camera\.yaml \(--camera\)$"):
+        open_sequence(folder)
+    marked = write_sequence(tmp_path / "marked", [frame] * 2, {**millimetres, "depth_invalid": 65535})
+    assert open_sequence(marked)[0].depth_m[0, 0] == 0.0
+
+
 def test_a_sequence_without_any_depth_is_refused(tmp_path):
     folder = write_sequence(tmp_path / "seq", [depth(0)] * (DEPTH_CHECK_FRAMES + 5))
     with pytest.raises(SequenceFormatError, match=r"depth\.txt: none of 30 depth images checked .* has valid depth"):

@@ -22,6 +22,9 @@ from tambridge.trajectory import Trajectory, read_tum_trajectory
 
 MAX_ASSOCIATION_DIFFERENCE_S = 0.02
 PLAUSIBLE_MEDIAN_DEPTH_M = (0.1, 10.0)
+MAX_SATURATED_SHARE = 0.01
+"""Share of a depth image's pixels at 65535 above which, with no ``depth_invalid`` given, the reader asks whether that
+value marks missing depth."""
 GT_RGB_FOLDER = "gt_rgb"
 """Optional folder of sharp ground-truth colour images, named as in ``rgb/`` (synthetic blurred sequences)."""
 
@@ -526,6 +529,17 @@ def check_depth_scale_plausible(sequence: RgbdSequence) -> None:
         valid = depth_m[depth_m > 0]
         if valid.size < DEPTH_CHECK_MIN_VALID * depth_m.size:
             continue
+        scale = sequence.sensor.depth_scale
+        largest_m = np.float32(np.iinfo(np.uint16).max) / np.float32(scale)
+        share = float(np.mean(depth_m == largest_m))
+        if sequence.sensor.depth_invalid is None and share >= MAX_SATURATED_SHARE:
+            # Sensors that mark "no depth" with the largest value (7-Scenes, some drivers) would put those pixels
+            # tens of metres away as map geometry.
+            raise SequenceFormatError(
+                f"{path}: {share:.0%} of its pixels are 65535, the largest 16-bit value ({largest_m:.3g} m at "
+                f"depth_scale {scale:g}); if it marks pixels without depth, set depth_invalid: 65535 in camera.yaml "
+                "(--camera)"
+            )
         median_m = float(np.median(valid))
         low, high = PLAUSIBLE_MEDIAN_DEPTH_M
         if not low <= median_m <= high:
