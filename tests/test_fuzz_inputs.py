@@ -100,6 +100,12 @@ def test_index_files_give_the_listed_frames_or_an_error_naming_file_and_line(ima
     rgb_error, rgb_entries = first_bad_index_line(rgb_txt, rgb_txt.read_text())
     depth_error, depth_entries = first_bad_index_line(depth_txt, depth_txt.read_text())
     expected_error = rgb_error or depth_error
+    for path, entries in [] if expected_error else [(rgb_txt, rgb_entries), (depth_txt, depth_entries)]:
+        # Frames 10 s or more apart (median) are taken for stamps in another unit than seconds.
+        stamps = np.array([stamp for stamp, _ in entries])
+        if len(stamps) > 1 and np.median(np.diff(stamps)) >= 10.0:
+            expected_error = f"{path}: |timestamps must be in seconds"
+            break
     if not expected_error:
         # Both lists hold the fixture's own 1.0 / 1.001 pair, so association always finds a frame.
         pairs = associate(np.array([s for s, _ in rgb_entries]), np.array([s for s, _ in depth_entries]))

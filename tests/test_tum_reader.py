@@ -1,4 +1,5 @@
 
+import re
 import subprocess
 
 import cv2
@@ -190,6 +191,16 @@ def test_an_associations_file_alone_is_named_with_commands_that_make_the_index_f
     made = open_sequence(folder)
     np.testing.assert_array_equal(made.timestamps_s, expected.timestamps_s)
     assert made.depth_paths == expected.depth_paths and made.rgb_paths == expected.rgb_paths
+
+
+@pytest.mark.parametrize("stamps, unit, factor", [((1305031102175.0, 1305031102208.0), "milliseconds", "1000"),
+                                                  ((1305031102175304000.0, 1305031102208564000.0), "nanoseconds", "1e+09")])
+def test_stamps_in_another_unit_than_seconds_are_named(tmp_path, stamps, unit, factor):
+    """A recorder's milli- or nanoseconds: the frames would lie 33 units apart, a camera half a minute apart."""
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6, rgb_stamps=stamps, depth_stamps=stamps)
+    with pytest.raises(SequenceFormatError, match=rf"rgb\.txt: its frames lie .* apart \(median\); timestamps must be in "
+                                                  rf"seconds, and these look like {unit}: divide them by {re.escape(factor)}$"):
+        open_sequence(tmp_path / "seq")
 
 
 def test_unknown_camera_without_camera_file(tmp_path):

@@ -407,6 +407,8 @@ def open_sequence(
     depth_list = read_file_list(folder / "depth.txt")
     rgb_stamps = np.array([stamp for stamp, _ in rgb_list])
     depth_stamps = np.array([stamp for stamp, _ in depth_list])
+    check_stamps_in_seconds(rgb_stamps, folder / "rgb.txt")
+    check_stamps_in_seconds(depth_stamps, folder / "depth.txt")
     pairs = associate(rgb_stamps, depth_stamps)
     if not pairs:
         raise SequenceFormatError(
@@ -442,6 +444,25 @@ def open_sequence(
         check_depth_scale_plausible(sequence)
     check_first_frame(sequence)
     return sequence
+
+
+MAX_FRAME_INTERVAL_S = 10.0
+"""Median time between an index file's frames above which its stamps are taken for another unit than seconds."""
+STAMP_UNITS = ((1e7, "nanoseconds", 1e9), (1e4, "microseconds", 1e6), (MAX_FRAME_INTERVAL_S, "milliseconds", 1e3))
+"""(median interval at or above which, the unit it suggests, its count per second), largest first."""
+
+
+def check_stamps_in_seconds(stamps: np.ndarray, path: Path) -> None:
+    """Raise :class:`SequenceFormatError` naming ``path`` where its frames lie :data:`MAX_FRAME_INTERVAL_S` or more
+    apart (median): TUM's stamps are seconds, and a recorder's milli- to nanoseconds would pass for a camera a day
+    apart, failing later as stamps that match nothing, or with frame intervals of years."""
+    if len(stamps) < 2:
+        return
+    interval = float(np.median(np.diff(np.sort(stamps))))
+    for threshold, unit, per_second in STAMP_UNITS:
+        if interval >= threshold:
+            raise SequenceFormatError(f"{path}: its frames lie {interval:.6g} apart (median); timestamps must be in "
+                                      f"seconds, and these look like {unit}: divide them by {per_second:g}")
 
 
 def check_first_frame(sequence: RgbdSequence) -> None:
