@@ -108,7 +108,9 @@ def _print_run_summary(result) -> None:
             f"ATE RMSE: {metrics.trajectory.ate_rmse_m * 100:.2f} cm over {metrics.trajectory.pose_count} poses "
             f"(SE(3)-aligned); RPE {metrics.trajectory.rpe_trans_rmse_m * 100:.2f} cm/frame"
         )
-    click.echo(f"{metrics.frames} frames at {metrics.fps_end_to_end:.1f} frames/s")
+    # Lost frames keep a pose (bridged between tracked ones) and count in the ATE, as in any trajectory file.
+    lost = f", {metrics.frames_lost} lost (posed between the tracked ones; run.log names them)" if metrics.frames_lost else ""
+    click.echo(f"{metrics.frames} frames at {metrics.fps_end_to_end:.1f} frames/s{lost}")
     click.echo(f"outputs: {result.output_dir}")
 
 

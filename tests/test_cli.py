@@ -38,6 +38,18 @@ def test_reconstruct_writes_outputs_and_a_real_ate(synthetic_sequence_dir, tmp_p
     assert "finished" in (out / "run.log").read_text() and "colour images of rgb.txt" not in (out / "run.log").read_text()
 
 
+def test_the_run_summary_counts_lost_frames(capsys, tmp_path):
+    from types import SimpleNamespace
+
+    from cli import _print_run_summary
+    from tests.test_report import _metrics
+
+    for lost, said in ((0, "30 frames at 3.0 frames/s\n"),
+                       (2, "30 frames at 3.0 frames/s, 2 lost (posed between the tracked ones; run.log names them)\n")):
+        _print_run_summary(SimpleNamespace(metrics=_metrics(frames_lost=lost), output_dir=tmp_path))
+        assert capsys.readouterr().out == f"{said}outputs: {tmp_path}\n"
+
+
 def test_stride_and_max_frames_reach_the_run(synthetic_sequence_dir, tmp_path):
     out = tmp_path / "out"
     result = CliRunner().invoke(

@@ -531,7 +531,8 @@ class OrbFrontend:
         return placed
 
     def _lost(self, frame: Frame, features: FrameFeatures, reason: str) -> TrackResult:
-        """Count and report a frame that could not be localised; its pose is the constant-velocity prediction."""
+        """Count and report a frame that could not be localised; its pose is the constant-velocity prediction (before
+        any map, the pose the first map will start at)."""
         self.frames_lost += 1
         self._lost_streak += 1
         camera_from_world_last = self._camera_from_world_last()
@@ -540,8 +541,10 @@ class OrbFrontend:
         else:
             predicted = self._motion @ camera_from_world_last
         logger.warning(
-            "frame %d (t=%.6f): tracking lost (%s; %d keypoints); its pose is the constant-velocity prediction%s",
+            "frame %d (t=%.6f): tracking lost (%s; %d keypoints); its pose is %s%s",
             frame.index, frame.timestamp_s, reason, len(features),
+            # Before the first map there is nothing to predict from: the frame that starts the map has this pose too.
+            "the first map's origin" if camera_from_world_last is None else "the constant-velocity prediction",
             "; a new map segment starts at the next frame with depth" if self._lost_streak >= LOST_FRAMES_BEFORE_NEW_SEGMENT else "",
         )
         self._record(frame, predicted, tracked=False)
