@@ -58,6 +58,10 @@ logger = logging.getLogger("tambridge.pipelines.reconstruct")
 RUN_FILES = ("config.yaml", "run.log", "trajectory.txt", "keyframes.txt", "sparse_map.npz", "splats.ply", "mesh.ply",
              *(f"report/{name}" for name in REPORT_FILES), CHECKPOINT_FOLDER + "/" + CHECKPOINT_NAME, "metrics.json")
 """Every file a run may write, relative to its output folder (its manifest lists them)."""
+SCALE_WARNING_FACTOR = 1.5
+"""How far (a factor either way) the Sim(3) fit of a run to its ground truth may scale it before the run warns."""
+SCALE_CHECK_MIN_PATH_M = 0.2
+"""The ground truth's path length below which a Sim(3) scale says too little to warn of."""
 MANY_UNPAIRED_SHARE = 0.05
 """A share of rgb.txt's colour images without a depth image above which the run warns (on the console) rather than
 only logs it."""
@@ -429,4 +433,17 @@ def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResul
         return metrics, None
     metrics.trajectory = TrajectoryMetrics(**errors.summary())
     logger.info("ATE RMSE %.2f cm over %d poses (SE(3)-aligned)", errors.ate_rmse_m * 100, errors.pose_count)
+    warn_of_a_scale_off(tracking.trajectory, sequence)
     return metrics, errors
+
+
+def warn_of_a_scale_off(trajectory: Trajectory, sequence: RgbdSequence) -> None:
+    """Warn where the Sim(3) fit to the ground truth sizes the trajectory :data:`SCALE_WARNING_FACTOR` times or more
+    off, over a path of :data:`SCALE_CHECK_MIN_PATH_M` or more: the depth scale's plausibility check (median depth in
+    0.1-10 m) passes a ``depth_scale`` 5 times too large, which shrinks the whole reconstruction."""
+    fit = evaluate_trajectory(trajectory, sequence.ground_truth, align="sim3")
+    path_m = float(np.linalg.norm(np.diff(fit.ref.world_from_camera[:, :3, 3], axis=0), axis=1).sum())
+    if path_m >= SCALE_CHECK_MIN_PATH_M and abs(np.log(fit.scale)) >= np.log(SCALE_WARNING_FACTOR):
+        logger.warning("the trajectory is %.3g times the size of groundtruth.txt's (Sim(3) fit over %.2f m of path): a "
+                       "depth_scale off by that factor? depth_scale %g would fit (camera.yaml, --camera)", 1.0 / fit.scale,
+                       path_m, sequence.sensor.depth_scale / fit.scale)

@@ -88,3 +88,19 @@ def test_colour_images_without_depth_are_counted_and_many_of_them_warned_of(synt
     log = (tmp_path / "out" / "run.log").read_text()
     assert ("WARNING tambridge.pipelines.reconstruct: 20 of the 30 colour images of rgb.txt have no depth image within "
             "0.02 s: left out; check depth.txt") in log
+
+
+def test_a_depth_scale_off_by_a_factor_is_warned_of_where_there_is_ground_truth(synthetic_sequence_dir, tmp_path, caplog):
+    """Twice the depth scale halves every depth (the median still plausible) and so the whole trajectory: the Sim(3)
+    fit to the ground truth says so, with the scale that fits."""
+    folder = tmp_path / "scaled"
+    shutil.copytree(synthetic_sequence_dir, folder)
+    camera = (folder / "camera.yaml").read_text()
+    scale = float(re.search(r"depth_scale: *([0-9.e+]+)", camera).group(1))
+    (folder / "camera.yaml").write_text(camera.replace(re.search(r"depth_scale: *[0-9.e+]+", camera).group(0),
+                                                       f"depth_scale: {2 * scale}"))
+    reconstruct(folder, tmp_path / "out", load_config(None, OPTIONS), progress=False)
+    warning = re.search(r"the trajectory is ([0-9.]+) times the size of groundtruth\.txt's \(Sim\(3\) fit over [0-9.]+ m "
+                        r"of path\): a depth_scale off by that factor\? depth_scale ([0-9.]+) would fit", caplog.text)
+    assert warning and float(warning.group(1)) == pytest.approx(0.5, abs=0.02), caplog.text
+    assert float(warning.group(2)) == pytest.approx(scale, rel=0.04)
