@@ -443,7 +443,8 @@ def warn_of_a_scale_off(trajectory: Trajectory, sequence: RgbdSequence) -> None:
     0.1-10 m) passes a ``depth_scale`` 5 times too large, which shrinks the whole reconstruction."""
     fit = evaluate_trajectory(trajectory, sequence.ground_truth, align="sim3")
     path_m = float(np.linalg.norm(np.diff(fit.ref.world_from_camera[:, :3, 3], axis=0), axis=1).sum())
-    if path_m >= SCALE_CHECK_MIN_PATH_M and abs(np.log(fit.scale)) >= np.log(SCALE_WARNING_FACTOR):
+    if path_m >= SCALE_CHECK_MIN_PATH_M and np.isfinite(fit.scale) and fit.scale > 0 \
+            and abs(np.log(fit.scale)) >= np.log(SCALE_WARNING_FACTOR):
         logger.warning("the trajectory is %.3g times the size of groundtruth.txt's (Sim(3) fit over %.2f m of path): a "
                        "depth_scale off by that factor? depth_scale %g would fit (camera.yaml, --camera)", 1.0 / fit.scale,
                        path_m, sequence.sensor.depth_scale / fit.scale)
