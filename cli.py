@@ -427,7 +427,9 @@ def export(run_dir, export_format, output_dir, frames, images, text) -> None:
 
     result = export_run(run_dir, output_dir, export_format, frames, images, text)
     tracks = f" ({result.observations} observations in their tracks)" if result.observations else ""
-    if result.observations == 0:
+    if result.observations == 0 and str(frames).strip().lower() == "keyframes":
+        tracks = f" (none with a track: the run made {result.images} keyframe(s), and a track needs two)"
+    elif result.observations == 0:
         # Tracks come from the keyframes' observations: frames that are not keyframes give none.
         tracks = " (none with a track: no point is seen in two of these images that are keyframes; --frames keyframes gives tracks)"
     click.echo(f"wrote {result.images} images and {result.points} points{tracks} to {result.output_dir}")

@@ -394,6 +394,15 @@ def test_cli_export_prints_what_it_wrote(run_dir, tmp_path):
     assert "(none with a track: no point is seen in two of these images that are keyframes" in single.output
 
 
+def test_an_export_of_a_run_with_one_keyframe_says_why_no_point_has_a_track(sequence_dir, tmp_path):
+    reconstruct(sequence_dir, tmp_path / "run", load_config(None, [*RUN_OPTIONS, "mesh.enabled=false", "input.max_frames=1"]),
+                progress=False)
+    result = CliRunner().invoke(main, ["export", str(tmp_path / "run"), "--format", "colmap", "-o", str(tmp_path / "out")])
+    assert result.exit_code == 0, result.output
+    assert result.output.startswith("wrote 1 images and ") and \
+        " points (none with a track: the run made 1 keyframe(s), and a track needs two) to " in result.output
+
+
 def _refused(arguments, tmp_path) -> str:
     result = CliRunner().invoke(main, ["export", *map(str, arguments)])
     assert result.exit_code == 2, result.output
