@@ -223,12 +223,11 @@ def saying_the_run_is_unfinished(output_dir: Path, checkpoint_file: Path) -> Ite
     except RunStopped as stop:
         if not stop.at_once:
             raise
-        checkpoint = find_checkpoint(checkpoint_file)
-        if checkpoint is None:
+        if not checkpoint_file.is_file():
             raise RunStopped(stop.signum, f"{stop}; {output_dir} holds the unfinished run, with no checkpoint: run again "
                                           "to start over") from None
-        where = f"after frame {checkpoint.next_frame} of {checkpoint.sequence['frames']}"
-        raise RunStopped(stop.signum, f"{stop}; {output_dir} keeps the checkpoint {where}: the same command with --resume "
+        # run.log says which frame the latest checkpoint is at; reading the checkpoint here could take seconds.
+        raise RunStopped(stop.signum, f"{stop}; {output_dir} keeps its latest checkpoint: the same command with --resume "
                                       "continues there") from None
     except TambridgeError as error:
         go_on = "the same command replaces it once that is fixed"
@@ -326,7 +325,10 @@ def track_frames(
             # resumes from here rather than from the last keyframe's checkpoint. (Where no frame tracked, the run
             # fails next: nothing is worth resuming.)
             with run_log.stage("checkpoint"):
-                checkpoints.write(len(sequence))
+                checkpoints.write_unless_written(len(sequence))
+        if stops is not None and stops.requested is not None:
+            # A signal while that checkpoint was written.
+            stop_after_frame(stops.requested, len(sequence), len(sequence), checkpoints, run_log)
     with run_log.stage("tracking"):
         return frontend.finish()
 
@@ -349,7 +351,7 @@ def stop_after_frame(signum: int, next_frame: int, frame_count: int, checkpoints
         raise RunStopped(signum, f"{where}; no checkpoint (checkpoint.every_keyframes=0): run again to start over",
                          at_once=False)
     with run_log.stage("checkpoint"):
-        checkpoints.write(next_frame)
+        checkpoints.write_unless_written(next_frame)
     raise RunStopped(signum, f"{where}; checkpoint written: the same command with --resume continues there",
                      at_once=False)
 

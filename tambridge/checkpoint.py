@@ -356,6 +356,7 @@ class KeyframeCheckpoints:
         self.keyframes = keyframes_so_far
         self._keyframes_at_last = keyframes_so_far
         self._time_of_last = time.perf_counter()
+        self._next_frame_written: int | None = None
 
     def after_keyframe(self, next_frame: int) -> None:
         """Call after each keyframe is tracked and mapped; ``next_frame`` is the index of the frame that comes next."""
@@ -369,5 +370,11 @@ class KeyframeCheckpoints:
         """Write a checkpoint now (frames ``[0, next_frame)`` tracked and mapped)."""
         size = save_checkpoint(self.path, self.snapshot(next_frame))
         self._keyframes_at_last, self._time_of_last = self.keyframes, time.perf_counter()
+        self._next_frame_written = next_frame
         logger.info("checkpoint at frame %d (%d keyframes): %s, %.1f MB", next_frame, self.keyframes, self.path,
                     size / 1e6)
+
+    def write_unless_written(self, next_frame: int) -> None:
+        """:meth:`write`, unless this object's last checkpoint is already at ``next_frame`` (the same state)."""
+        if self._next_frame_written != next_frame:
+            self.write(next_frame)

@@ -215,8 +215,8 @@ def test_a_stop_after_tracking_resumes_from_the_checkpoint_of_its_last_frame(syn
     out = tmp_path / "stopped"
     result = _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", *_set(STOPPED_OPTIONS)])
     frames = len(uninterrupted_trajectory)
-    assert (result.exit_code, result.output) == (130, f"error: stopped by SIGINT; {out} keeps the checkpoint after frame "
-                                                      f"{frames} of {frames}: the same command with --resume continues there\n")
+    assert (result.exit_code, result.output) == (130, f"error: stopped by SIGINT; {out} keeps its latest checkpoint: the "
+                                                      "same command with --resume continues there\n")
     assert load_checkpoint(checkpoint_path(out)).next_frame == frames and not (out / "metrics.json").exists()
     monkeypatch.setattr(pipeline.MappingStage, "finish", finish)
     resumed = _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--resume",
@@ -233,6 +233,25 @@ def test_a_stop_after_tracking_resumes_from_the_checkpoint_of_its_last_frame(syn
                    *_set([*STOPPED_OPTIONS, "input.max_frames=6", "checkpoint.every_keyframes=0"])])
     assert (result.exit_code, result.output) == (130, f"error: stopped by SIGINT; {off} holds the unfinished run, with no "
                                                       "checkpoint: run again to start over\n")
+
+    # A first signal while the last frame's checkpoint is written is honoured once it is written, not lost.
+    monkeypatch.setattr(pipeline.MappingStage, "finish", finish)
+    write = pipeline.KeyframeCheckpoints.write_unless_written
+
+    signals = []
+
+    def signalled(self, next_frame):
+        write(self, next_frame)
+        if next_frame == 6 and not signals:  # once: a second signal stops a run at once
+            signals.append(os.kill(os.getpid(), signal.SIGINT))
+
+    monkeypatch.setattr(pipeline.KeyframeCheckpoints, "write_unless_written", signalled)
+    late = tmp_path / "late"
+    result = _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(late), "--quiet",
+                   *_set([*STOPPED_OPTIONS, "input.max_frames=6"])])
+    assert (result.exit_code, result.output) == (130, "error: stopped by SIGINT after frame 6 of 6; checkpoint written: the "
+                                                      "same command with --resume continues there\n")
+    assert load_checkpoint(checkpoint_path(late)).next_frame == 6
 
 
 def test_ground_truth_on_another_clock_leaves_the_results_and_says_why(synthetic_sequence_dir, tmp_path):

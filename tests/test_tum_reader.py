@@ -146,6 +146,25 @@ def test_empty_or_truncated_png_is_refused_on_opening(tmp_path, content, message
         open_sequence(tmp_path / "seq")
 
 
+def test_a_phone_jpeg_turned_by_its_exif_orientation_fits_the_camera_and_32_bit_depth_does_not(tmp_path):
+    """Stored 6x8 with EXIF orientation 6 (turn a quarter): cv2 decodes it 8x6, as the camera is; the header check
+    must read it so too. A 32-bit TIFF depth image (Pillow mode I, as Pillow 9 opens 16-bit PNGs) is refused."""
+    import PIL.Image
+
+    _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
+    folder = tmp_path / "seq"
+    exif = PIL.Image.Exif()
+    exif[0x0112] = 6
+    PIL.Image.fromarray(np.full((8, 6, 3), 100, np.uint8)).save(folder / "rgb/2.0.jpg", exif=exif)
+    (folder / "rgb.txt").write_text((folder / "rgb.txt").read_text().replace("rgb/2.0.png", "rgb/2.0.jpg"))
+    sequence = open_sequence(folder)
+    assert sequence[1].rgb.shape == (6, 8, 3)
+    PIL.Image.fromarray(np.full((6, 8), 10000, np.int32)).save(folder / "depth/2.005.tif")
+    (folder / "depth.txt").write_text((folder / "depth.txt").read_text().replace("depth/2.005.png", "depth/2.005.tif"))
+    with pytest.raises(SequenceFormatError, match=r"2\.005\.tif: depth must be a single-channel 16-bit PNG, got Pillow mode I;"):
+        open_sequence(folder)
+
+
 def test_png_that_ends_right_but_does_not_decode_is_named_on_reading(tmp_path):
     _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
     (tmp_path / "seq" / "depth" / "2.005.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really\0\0\0\0IEND\xaeB`\x82")

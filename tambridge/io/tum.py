@@ -284,13 +284,15 @@ class RgbdSequence:
         image, not when the run reaches it. Images whose header Pillow cannot read are left to decoding."""
         for rgb_path, depth_path in zip(self.rgb_paths, self.depth_paths):
             rgb, depth = image_header(rgb_path), image_header(depth_path)
-            if rgb is not None:
-                self._check_colour_size(rgb_path, rgb.width, rgb.height)
+            # Colour is decoded turned as a JPEG's EXIF orientation says (a phone's); depth as stored.
+            rgb_size = None if rgb is None else rgb.size[::-1] if rgb.quarter_turned else rgb.size
+            if rgb_size is not None:
+                self._check_colour_size(rgb_path, *rgb_size)
             if depth is not None:
-                if depth.mode not in SIXTEEN_BIT_GREY_MODES:
+                if depth.mode not in SIXTEEN_BIT_GREY_MODES or (depth.mode == "I" and depth.format != "PNG"):
                     raise depth_format_error(depth_path, IMAGE_MODE_WORDS.get(depth.mode, f"Pillow mode {depth.mode}"))
-                if rgb is not None:
-                    self._check_depth_size(depth_path, depth.size, rgb_path, rgb.size)
+                if rgb_size is not None:
+                    self._check_depth_size(depth_path, depth.size, rgb_path, rgb_size)
 
     def read_depth_m(self, path: Path) -> np.ndarray:
         """Depth PNG (uint16) as (H, W) float32 metres, 0 where invalid."""
@@ -333,19 +335,34 @@ def check_image_file(path: Path, listed_in: str) -> None:
 
 SIXTEEN_BIT_GREY_MODES = ("I;16", "I;16B", "I;16L", "I")
 """Pillow's modes of a single-channel 16-bit image, the one depth format the reader takes (Pillow before 10 opens a
-16-bit grey PNG as ``I``; another format's 32-bit ``I`` fails at decoding)."""
+16-bit grey PNG as ``I``: that mode is taken from PNGs only, another format's ``I`` being 32-bit)."""
+EXIF_ORIENTATION_TAG = 0x0112
+EXIF_QUARTER_TURNS = (5, 6, 7, 8)
+"""EXIF orientations that turn the image by a quarter (with or without a mirror): width and height swap."""
 IMAGE_MODE_WORDS = {"1": "a 1-bit image", "L": "an 8-bit grey image", "LA": "an 8-bit grey image with alpha",
                     "P": "a palette image", "RGB": "a colour image", "RGBA": "a colour image with alpha",
                     "F": "a 32-bit float image"}
 """Pillow's image modes in words, for errors."""
 
 
-def image_header(path: Path) -> PIL.Image.Image | None:
-    """The image at ``path`` as Pillow opens it, header only (``size`` as width, height, and ``mode``); None where
-    Pillow does not know the format."""
+@dataclasses.dataclass(frozen=True)
+class ImageHeader:
+    """What an image file's header says: ``size`` (width, height) as stored, Pillow's ``mode`` and ``format``, and
+    whether a JPEG's EXIF orientation turns it by a quarter (cv2's colour decoding applies it)."""
+
+    size: tuple[int, int]
+    mode: str
+    format: str | None
+    quarter_turned: bool
+
+
+def image_header(path: Path) -> ImageHeader | None:
+    """The header of the image at ``path`` (no decoding); None where Pillow does not know the format."""
     try:
         with PIL.Image.open(path) as image:
-            return image
+            # A JPEG's EXIF sits before its pixels; other formats' would make Pillow decode the image to find it.
+            turned = image.format == "JPEG" and image.getexif().get(EXIF_ORIENTATION_TAG) in EXIF_QUARTER_TURNS
+            return ImageHeader(image.size, image.mode, image.format, turned)
     except (PIL.UnidentifiedImageError, OSError):
         return None
 
