@@ -143,7 +143,8 @@ def read_run(run_dir: Path) -> RunRecord:
     if metrics.sequence_fingerprint is not None:
         # The folder is metrics.json's "sequence"; what matters here is that it still holds the frames the run read.
         current = sequence_fingerprint(sequence)
-        differences = sequence_differences({**metrics.sequence_fingerprint, "folder": current["folder"]}, current)
+        differences = sequence_differences({**metrics.sequence_fingerprint, "folder": current["folder"]}, current,
+                                           images_only=True)
         if differences:
             raise ExportError(f"{folder}: not the frames the run read ({'; '.join(differences)}); the export would pair "
                               "the run's poses with other images: run reconstruct again on the folder as it is now")

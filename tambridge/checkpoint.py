@@ -128,10 +128,12 @@ def sequence_fingerprint(sequence: RgbdSequence) -> dict:
             inside = Path(sequence.folder) in path.parents
             names[str(path.relative_to(sequence.folder)) if inside else str(path.resolve())] = path
     # Every image's size and modification time: an edited frame between those hashed changes them (a stat each).
-    stats = hashlib.sha1()
+    # Sizes alone too, for the export, which a copy that sets new times must not stop.
+    stats, sizes = hashlib.sha1(), hashlib.sha1()
     for path in (*sequence.rgb_paths, *sequence.depth_paths):
         status = Path(path).stat()
         stats.update(f"{Path(path).name} {status.st_size} {status.st_mtime_ns}\n".encode())
+        sizes.update(f"{Path(path).name} {status.st_size}\n".encode())
     return {
         "folder": str(folder),
         "frames": int(len(timestamps)),
@@ -139,11 +141,14 @@ def sequence_fingerprint(sequence: RgbdSequence) -> dict:
         "camera": repr(sequence.sensor),
         "files_sha256": {name: _sha256(path) if path.is_file() else "missing" for name, path in names.items()},
         "images_stat_sha1": stats.hexdigest(),
+        "images_size_sha1": sizes.hexdigest(),
     }
 
 
-def sequence_differences(saved: dict, current: dict) -> list[str]:
-    """What differs between two :func:`sequence_fingerprint`, in words."""
+def sequence_differences(saved: dict, current: dict, images_only: bool = False) -> list[str]:
+    """What differs between two :func:`sequence_fingerprint`, in words. ``images_only``: what an export reads, the
+    frames' images: groundtruth.txt and the images' modification times (a copy without -p sets new ones) are left
+    out, their sizes compared instead."""
     differences = []
     if saved.get("folder") != current["folder"]:
         differences.append(f"folder {saved.get('folder')}, now {current['folder']}")
@@ -156,10 +161,15 @@ def sequence_differences(saved: dict, current: dict) -> list[str]:
     saved_files = saved.get("files_sha256")
     saved_files = saved_files if type(saved_files) is dict else {}
     changed = sorted(name for name in saved_files.keys() | current["files_sha256"].keys()
-                     if saved_files.get(name) != current["files_sha256"].get(name))
+                     if saved_files.get(name) != current["files_sha256"].get(name)
+                     and not (images_only and name == "groundtruth.txt"))
     if changed:
         differences.append(f"other {', '.join(changed[:4])}{', ...' if len(changed) > 4 else ''}")
-    if not differences and saved.get("images_stat_sha1") != current["images_stat_sha1"]:
+    if differences:
+        return differences
+    if images_only and saved.get("images_size_sha1") != current["images_size_sha1"]:
+        differences.append("images changed since (their sizes)")
+    elif not images_only and saved.get("images_stat_sha1") != current["images_stat_sha1"]:
         differences.append("images changed since (their sizes or modification times)")
     return differences
 

@@ -2,6 +2,7 @@
 against the run's own files; conventions checked on a hand-made scene point; bad input refused whole."""
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -466,6 +467,13 @@ def test_an_image_changed_since_the_run_is_refused_before_the_export_writes_anyt
     """Same names, same frame count and stamps, other pixels: the run's poses would be paired with images it never
     read. metrics.json's fingerprint hashes the first, middle and last frames and stats every other."""
     run, _ = _copied_run_and_an_image(run_dir, sequence_dir, tmp_path)
+    assert len(export_module.read_run(run).trajectory) == FRAMES
+    # New modification times (a copy without -p) and a mended groundtruth.txt, which the export never reads: the
+    # same frames.
+    for image in (tmp_path / "room").rglob("*.png"):
+        os.utime(image, (1e9, 1e9))
+    with open(tmp_path / "room" / "groundtruth.txt", "a") as ground_truth:
+        ground_truth.write("# mended\n")
     assert len(export_module.read_run(run).trajectory) == FRAMES
     for index, name in ((FRAMES // 2, "rgb"), (3, "depth")):
         image = getattr(open_sequence(tmp_path / "room"), f"{name}_paths")[index]
