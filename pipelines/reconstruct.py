@@ -63,8 +63,9 @@ SCALE_WARNING_FACTOR = 1.5
 SCALE_CHECK_MIN_PATH_M = 0.2
 """The ground truth's path length below which a Sim(3) scale says too little to warn of."""
 MANY_UNPAIRED_SHARE = 0.05
-"""A share of rgb.txt's colour images without a depth image above which the run warns (on the console) rather than
-only logs it."""
+MANY_UNPAIRED_COUNT = 10
+"""The run warns (on the console) rather than only logs it where more than this share of rgb.txt's colour images, and
+at least this many, have no depth image: TUM's own recordings leave out a few, mostly before depth starts."""
 
 
 @dataclasses.dataclass
@@ -146,8 +147,7 @@ def reconstruct(
         logger.info("reconstructing %s into %s: %d frames, camera %s", sequence.folder, output_dir, len(sequence),
                     sequence.camera)
         if sequence.colour_frames_without_depth:
-            # A recording leaves out a few (TUM fr1/xyz 6 of 798); many say that depth.txt lacks frames.
-            many = sequence.colour_frames_without_depth > MANY_UNPAIRED_SHARE * sequence.colour_images_listed
+            many = many_without_depth(sequence.colour_frames_without_depth, sequence.colour_images_listed)
             logger.log(logging.WARNING if many else logging.INFO,
                        "%d of the %d colour images of rgb.txt have no depth image within %g s: left out%s",
                        sequence.colour_frames_without_depth, sequence.colour_images_listed,
@@ -210,6 +210,12 @@ def reconstruct(
         logger.info("finished in %.1f s", metrics.seconds_total)
         return ReconstructResult(world.trajectory(tracking.trajectory), world.trajectory(tracking.keyframe_trajectory),
                                  metrics, output_dir)
+
+
+def many_without_depth(without_depth: int, listed: int) -> bool:
+    """Whether ``without_depth`` of ``listed`` colour images without a depth image say that depth.txt lacks frames
+    (:data:`MANY_UNPAIRED_SHARE`, :data:`MANY_UNPAIRED_COUNT`)."""
+    return without_depth > MANY_UNPAIRED_SHARE * listed and without_depth >= MANY_UNPAIRED_COUNT
 
 
 @contextlib.contextmanager

@@ -104,3 +104,11 @@ def test_a_depth_scale_off_by_a_factor_is_warned_of_where_there_is_ground_truth(
                         r"of path\): a depth_scale off by that factor\? depth_scale ([0-9.]+) would fit", caplog.text)
     assert warning and float(warning.group(1)) == pytest.approx(0.5, abs=0.02), caplog.text
     assert float(warning.group(2)) == pytest.approx(scale, rel=0.04)
+
+
+def test_a_few_colour_images_without_depth_at_the_start_are_no_warning():
+    from pipelines.reconstruct import many_without_depth
+
+    # TUM fr1/xyz's first 37 colour images leave 5 out (depth starts later), the whole 798 leave 6 out.
+    assert not many_without_depth(5, 37) and not many_without_depth(6, 798)
+    assert many_without_depth(18, 37) and many_without_depth(20, 30) and not many_without_depth(12, 798)
