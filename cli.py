@@ -26,6 +26,10 @@ def _fail(error: Exception | str, status: int | None = None) -> None:
     sys.exit(status if status is not None else getattr(error, "exit_status", INPUT_ERROR_STATUS))
 
 
+_STOPPED_BY_CTRL_C = RunStopped(signal.SIGINT, f"stopped by {signal_name(signal.SIGINT)}")
+"""What a Ctrl-C outside a run's own handlers reports (one line, status 130)."""
+
+
 class _Group(click.Group):
     """Turns tambridge's input errors, click's errors in a command's arguments, the system's refusals to read or
     write a file (permissions, a full disk) and a Ctrl-C while a command runs into one line on stderr, never a
@@ -36,7 +40,7 @@ class _Group(click.Group):
             return super().make_context(info_name, args, parent, **extra)
         except KeyboardInterrupt:
             # Ctrl-C while click parses the arguments, before invoke: click itself would print "Aborted!", exit 1.
-            _fail(RunStopped(signal.SIGINT, f"stopped by {signal_name(signal.SIGINT)}"))
+            _fail(_STOPPED_BY_CTRL_C)
 
     def invoke(self, ctx):
         try:
@@ -49,7 +53,7 @@ class _Group(click.Group):
         except KeyboardInterrupt:
             # Ctrl-C where no run's own handlers are installed (tambridge.stop), e.g. while a command loads its
             # libraries: reported as a run stopped by SIGINT is.
-            _fail(RunStopped(signal.SIGINT, f"stopped by {signal_name(signal.SIGINT)}"))
+            _fail(_STOPPED_BY_CTRL_C)
         except BrokenPipeError:
             # The reader of the output went away (`tambridge config | head`): nothing to report to it.
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -109,7 +113,7 @@ def _print_run_summary(result) -> None:
             f"(SE(3)-aligned); RPE {metrics.trajectory.rpe_trans_rmse_m * 100:.2f} cm/frame"
         )
     # Lost frames keep a pose (bridged between tracked ones) and count in the ATE, as in any trajectory file.
-    lost = f", {metrics.frames_lost} lost (posed between the tracked ones; run.log names them)" if metrics.frames_lost else ""
+    lost = f", {metrics.frames_lost} lost (run.log names them)" if metrics.frames_lost else ""
     click.echo(f"{metrics.frames} frames at {metrics.fps_end_to_end:.1f} frames/s{lost}")
     click.echo(f"outputs: {result.output_dir}")
 
@@ -427,8 +431,8 @@ def export(run_dir, export_format, output_dir, frames, images, text) -> None:
 
     result = export_run(run_dir, output_dir, export_format, frames, images, text)
     tracks = f" ({result.observations} observations in their tracks)" if result.observations else ""
-    if result.observations == 0 and str(frames).strip().lower() == "keyframes":
-        tracks = f" (none with a track: the run made {result.images} keyframe(s), and a track needs two)"
+    if result.observations == 0 and result.images < 2:
+        tracks = " (none with a track: a track needs two images)"
     elif result.observations == 0:
         # Tracks come from the keyframes' observations: frames that are not keyframes give none.
         tracks = " (none with a track: no point is seen in two of these images that are keyframes; --frames keyframes gives tracks)"

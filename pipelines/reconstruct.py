@@ -146,11 +146,11 @@ def reconstruct(
         run_log.add_seconds("read", read_seconds)
         logger.info("reconstructing %s into %s: %d frames, camera %s", sequence.folder, output_dir, len(sequence),
                     sequence.camera)
-        if sequence.colour_frames_without_depth:
-            many = many_without_depth(sequence.colour_frames_without_depth, sequence.colour_images_listed)
+        if sequence.colour_images_without_depth:
+            many = many_without_depth(sequence.colour_images_without_depth, sequence.colour_images_listed)
             logger.log(logging.WARNING if many else logging.INFO,
                        "%d of the %d colour images of rgb.txt have no depth image within %g s: left out%s",
-                       sequence.colour_frames_without_depth, sequence.colour_images_listed,
+                       sequence.colour_images_without_depth, sequence.colour_images_listed,
                        MAX_ASSOCIATION_DIFFERENCE_S, "; check depth.txt" if many else "")
         atomic_write_text(output_dir / "config.yaml", to_yaml(config))
         frontend = make_frontend(config.frontend, sequence.camera)
@@ -412,7 +412,7 @@ def evaluate_run(sequence: RgbdSequence, config: Config, tracking: FrontendResul
         frames_relocalised=tracking.frames_relocalised,
         frames_tracked_by_depth=tracking.frames_tracked_by_depth,
         frames_without_depth=len(counters.frames_without_depth),
-        colour_images_without_depth=sequence.colour_frames_without_depth,
+        colour_images_without_depth=sequence.colour_images_without_depth,
         loops_closed=tracking.loops_closed,
         keyframes_culled=tracking.keyframes_culled,
         frontend_seconds_per_stage=tracking.timings_s,

@@ -46,7 +46,7 @@ def test_the_run_summary_counts_lost_frames(capsys, tmp_path):
     from tests.test_report import _metrics
 
     for lost, said in ((0, "30 frames at 3.0 frames/s\n"),
-                       (2, "30 frames at 3.0 frames/s, 2 lost (posed between the tracked ones; run.log names them)\n")):
+                       (2, "30 frames at 3.0 frames/s, 2 lost (run.log names them)\n")):
         _print_run_summary(SimpleNamespace(metrics=_metrics(frames_lost=lost), output_dir=tmp_path))
         assert capsys.readouterr().out == f"{said}outputs: {tmp_path}\n"
 

@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 
 from tambridge.errors import SequenceFormatError, TrajectoryFormatError
 from tambridge.geometry import pose_from_tum
-from tambridge.io.tum import associate, open_sequence
-from tambridge.trajectory import parse_tum_trajectory
+from tambridge.io.tum import MAX_FRAME_INTERVAL_S, associate, open_sequence
+from tambridge.trajectory import QUATERNION_NORM_TOLERANCE, parse_tum_trajectory
 
 CAMERA = "width 8\nheight 6\nfx 10\nfy 10\ncx 3.5\ncy 2.5\ndepth_scale 5000\n"
 RGB_VALUE, DEPTH_RAW = 90, 9000  # the fixture's images: grey colour, depth 9000 / 5000 = 1.8 m
@@ -103,7 +103,7 @@ def test_index_files_give_the_listed_frames_or_an_error_naming_file_and_line(ima
     for path, entries in [] if expected_error else [(rgb_txt, rgb_entries), (depth_txt, depth_entries)]:
         # Frames 10 s or more apart (median) are taken for stamps in another unit than seconds.
         stamps = np.array([stamp for stamp, _ in entries])
-        if len(stamps) > 1 and np.median(np.diff(stamps)) >= 10.0:
+        if len(stamps) > 1 and np.median(np.diff(stamps)) >= MAX_FRAME_INTERVAL_S:
             expected_error = f"{path}: |timestamps must be in seconds"
             break
     if not expected_error:
@@ -174,7 +174,7 @@ def first_bad_trajectory_line(text: str, source: str) -> tuple[str, list[np.ndar
             return where + "|non-finite value", []
         largest = np.abs(values[4:]).max()  # |q| = largest * |q / largest|: no overflow for huge components
         norm = largest * np.linalg.norm(values[4:] / largest) if largest > 0.0 else 0.0
-        if not abs(norm - 1.0) <= 0.01:
+        if not abs(norm - 1.0) <= QUATERNION_NORM_TOLERANCE:
             return where + "|, not 1; the columns must be", []
         rows.append((number, values))
     if not rows:

@@ -46,7 +46,7 @@ CAMERA_8x6 = "width 8\nheight 6\nfx 10\nfy 10\ncx 3.5\ncy 2.5\ndepth_scale 5000\
 def test_colour_images_without_depth_are_left_out_and_counted(tmp_path):
     _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6, rgb_stamps=(1.0, 1.5, 2.0, 3.0))
     sequence = open_sequence(tmp_path / "seq", max_frames=1)
-    assert len(sequence) == 1 and sequence.colour_frames_without_depth == 2
+    assert len(sequence) == 1 and sequence.colour_images_without_depth == 2
 
 
 def test_tum_depth_is_scaled_by_5000(tmp_path):

@@ -23,7 +23,7 @@ from tambridge.trajectory import Trajectory, read_tum_trajectory
 MAX_ASSOCIATION_DIFFERENCE_S = 0.02
 PLAUSIBLE_MEDIAN_DEPTH_M = (0.1, 10.0)
 MAX_SATURATED_SHARE = 0.01
-"""Share of a depth image's pixels at 65535 above which, with no ``depth_invalid`` given, the reader asks whether that
+"""Share of a depth image's pixels at 65535 from which, with no ``depth_invalid`` given, the reader asks whether that
 value marks missing depth."""
 GT_RGB_FOLDER = "gt_rgb"
 """Optional folder of sharp ground-truth colour images, named as in ``rgb/`` (synthetic blurred sequences)."""
@@ -160,13 +160,13 @@ class RgbdSequence:
         ground_truth: Trajectory | None,
         gt_rgb_paths: list[Path] | None = None,
         depth_timestamps_s: np.ndarray | None = None,
-        colour_frames_without_depth: int = 0,
+        colour_images_without_depth: int = 0,
         colour_images_listed: int = 0,
     ) -> None:
         self.folder = folder
         # Colour images of rgb.txt that no depth image lies near (MAX_ASSOCIATION_DIFFERENCE_S): left out; of
         # colour_images_listed in rgb.txt (before stride and max_frames).
-        self.colour_frames_without_depth = colour_frames_without_depth
+        self.colour_images_without_depth = colour_images_without_depth
         self.colour_images_listed = colour_images_listed
         self.sensor = sensor
         self.rgb_paths = rgb_paths
@@ -450,7 +450,7 @@ def open_sequence(
         ground_truth=ground_truth,
         gt_rgb_paths=_gt_rgb_paths(folder, [rgb_list[i][1] for i, _ in pairs]),
         depth_timestamps_s=np.array([depth_stamps[j] for _, j in pairs]),
-        colour_frames_without_depth=without_depth,
+        colour_images_without_depth=without_depth,
         colour_images_listed=len(rgb_list),
     )
     for rgb_path, depth_path in zip(sequence.rgb_paths, sequence.depth_paths):
