@@ -167,9 +167,11 @@ def sequence_differences(saved: dict, current: dict, images_only: bool = False) 
         differences.append(f"other {', '.join(changed[:4])}{', ...' if len(changed) > 4 else ''}")
     if differences:
         return differences
-    if images_only and saved.get("images_size_sha1") != current["images_size_sha1"]:
-        differences.append("images changed since (their sizes)")
-    elif not images_only and saved.get("images_stat_sha1") != current["images_stat_sha1"]:
+    # Fingerprints written before the sizes had their own digest compare sizes and times together.
+    if images_only and "images_size_sha1" in saved:
+        if saved["images_size_sha1"] != current["images_size_sha1"]:
+            differences.append("images changed since (their sizes)")
+    elif saved.get("images_stat_sha1") != current["images_stat_sha1"]:
         differences.append("images changed since (their sizes or modification times)")
     return differences
 

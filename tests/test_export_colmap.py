@@ -467,6 +467,13 @@ def test_an_image_changed_since_the_run_is_refused_before_the_export_writes_anyt
     read. metrics.json's fingerprint hashes the first, middle and last frames and stats every other."""
     run, _ = _copied_run_and_an_image(run_dir, sequence_dir, tmp_path)
     assert len(export_module.read_run(run).trajectory) == FRAMES
+    # The fingerprint of a run made before the sizes had their own digest: the same frames, read as such.
+    written = (run / "metrics.json").read_text()
+    older = json.loads(written)
+    del older["sequence_fingerprint"]["images_size_sha1"]
+    (run / "metrics.json").write_text(json.dumps(older))
+    assert len(export_module.read_run(run).trajectory) == FRAMES
+    (run / "metrics.json").write_text(written)
     # New modification times (a copy without -p) and a mended groundtruth.txt, which the export never reads: the
     # same frames.
     for image in (tmp_path / "room").rglob("*.png"):
