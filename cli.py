@@ -105,6 +105,21 @@ def main() -> None:
         root.addHandler(console)
 
 
+def _check_plot_and_json(plot: Path, json_path: Path | None, inputs: tuple) -> None:
+    """The output checks of ``evaluate`` and ``compare``: a PNG ``plot`` and an optional ``json_path``, neither an
+    input, one another, or a file a run wrote (its splats.ply, metrics.json...)."""
+    from tambridge.files import check_output_file
+    from tambridge.run_folder import check_not_a_runs_own_file
+
+    check_output_file(plot, "--plot", inputs)
+    if Path(plot).suffix.lower() != ".png":
+        raise TambridgeError(f"--plot {plot}: the plot is a PNG; name the file *.png")
+    check_not_a_runs_own_file(plot, "--plot")
+    if json_path:
+        check_output_file(json_path, "--json", inputs, (("--plot", plot),))
+        check_not_a_runs_own_file(json_path, "--json")
+
+
 def _print_run_summary(result) -> None:
     metrics = result.metrics
     if metrics.trajectory is not None:
@@ -343,14 +358,12 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
     """ATE and RPE of a TUM trajectory ESTIMATE against GROUND_TRUTH, with a plot."""
     from tambridge.evaluation.plots import plot_trajectory_errors
     from tambridge.evaluation.trajectory import evaluate_trajectory
-    from tambridge.files import atomic_write_text, check_output_file
+    from tambridge.files import atomic_write_text
     from tambridge.run_folder import add_to_manifest
     from tambridge.trajectory import read_tum_trajectory
 
     plot = plot or Path(estimate).with_suffix(".png")
-    check_output_file(plot, "--plot", (estimate, ground_truth))
-    if json_path:
-        check_output_file(json_path, "--json", (estimate, ground_truth), (("--plot", plot),))
+    _check_plot_and_json(plot, json_path, (estimate, ground_truth))
     try:
         errors = evaluate_trajectory(read_tum_trajectory(estimate), read_tum_trajectory(ground_truth), align)
     except ValueError as error:
@@ -390,10 +403,11 @@ def export_mesh(run_dir, mesh_format, output_path) -> None:
     from tambridge.export.mesh import convert_mesh
     from tambridge.export.world import UpSource, gltf_from_world
     from tambridge.files import check_output_file
-    from tambridge.run_folder import add_to_manifest, is_listed
+    from tambridge.run_folder import add_to_manifest, check_not_a_runs_own_file, is_listed
 
     output_path = output_path or Path(run_dir) / f"mesh.{mesh_format}"
     check_output_file(output_path, "-o", (Path(run_dir) / "mesh.ply",))
+    check_not_a_runs_own_file(output_path, "-o")
     if output_path.exists() and not is_listed(run_dir, output_path):
         raise TambridgeError(f"-o {output_path}: exists and is not a file of the run in {run_dir}; remove it or name "
                              "a new file")
@@ -471,11 +485,9 @@ def colmap(sequence_dir, output_dir, every, max_frames, camera_file) -> None:
 def compare(estimates, ground_truth, sim3_names, plot, json_path) -> None:
     """ATE/RPE of several TUM trajectories ESTIMATES against --gt in one table, and one plot of all."""
     from pipelines.compare import compare_files
-    from tambridge.files import atomic_write_text, check_output_file
+    from tambridge.files import atomic_write_text
 
-    check_output_file(plot, "--plot", (*estimates, ground_truth))
-    if json_path:
-        check_output_file(json_path, "--json", (*estimates, ground_truth), (("--plot", plot),))
+    _check_plot_and_json(plot, json_path, (*estimates, ground_truth))
     comparison = compare_files(ground_truth, estimates, sim3_names, plot)
     click.echo(comparison.table())
     click.echo(f"plot: {plot}")

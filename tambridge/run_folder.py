@@ -94,6 +94,28 @@ def read_manifest(folder: Path) -> list[str]:
     return list(document["files"])
 
 
+def check_not_a_runs_own_file(path: Path, option: str) -> None:
+    """Raise :class:`OutputFolderError` (one line naming ``option`` and ``path``) where ``path`` is a file a run wrote:
+    listed in the manifest of the nearest folder above it that has one, and not added since by another command
+    (:func:`add_to_manifest`), which may write it again; the manifest and the lock themselves likewise."""
+    path = Path(path).resolve()
+    folder = next((parent for parent in path.parents if (parent / MANIFEST_NAME).is_file()), None)
+    if folder is None:
+        return
+    relative = str(path.relative_to(folder))
+    if relative in (MANIFEST_NAME, LOCK_NAME) or (relative in read_manifest(folder)
+                                                   and relative not in _added_to_manifest(folder)):
+        raise OutputFolderError(f"{option} {path}: is a file of the run in {folder} (its {MANIFEST_NAME} lists it); "
+                                "name another file")
+
+
+def _added_to_manifest(folder: Path) -> list[str]:
+    """The files of ``folder``'s manifest that commands after the run added (:func:`add_to_manifest`)."""
+    document = json.loads((Path(folder) / MANIFEST_NAME).read_text(encoding="utf-8"))
+    added = document.get("added", [])
+    return [name for name in added if isinstance(name, str)] if isinstance(added, list) else []
+
+
 def is_listed(folder: Path, path: Path) -> bool:
     """Whether ``path`` is a file the run in ``folder`` (or a command since, such as ``export-mesh``) listed in its
     manifest: one that may be written again."""
@@ -107,10 +129,10 @@ def add_to_manifest(folder: Path, written: Path) -> None:
     folder, written = Path(folder).resolve(), Path(written).resolve()
     if not (folder / MANIFEST_NAME).is_file() or folder not in written.parents:
         return
-    files = read_manifest(folder)
+    files, added = read_manifest(folder), _added_to_manifest(folder)
     relative = str(written.relative_to(folder))
     if relative not in files:
-        document = {"format": MANIFEST_FORMAT, "files": [*files, relative]}
+        document = {"format": MANIFEST_FORMAT, "files": [*files, relative], "added": [*added, relative]}
         atomic_write_text(folder / MANIFEST_NAME, json.dumps(document, indent=2) + "\n")
 
 

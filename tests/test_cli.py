@@ -179,6 +179,8 @@ def test_evaluate_and_compare_refuse_bad_output_paths_before_any_work(synthetic_
          f"--json {tmp_path / 'c.png'}: is also the --plot file"),
         (["evaluate", estimate, ground_truth, "--plot", tmp_path / "new" / ("p" * 300 + ".png")],
          f"--plot {tmp_path / 'new' / ('p' * 300 + '.png')}: its part {'p' * 24}... is 304 bytes"),
+        (["compare", estimate, "--gt", ground_truth, "--plot", tmp_path / "c.pdf"],
+         f"--plot {tmp_path / 'c.pdf'}: the plot is a PNG; name the file *.png"),
     ):
         result = CliRunner().invoke(main, [str(argument) for argument in command])
         assert result.exit_code == 2 and result.output.startswith(f"error: {message}"), result.output
@@ -187,6 +189,28 @@ def test_evaluate_and_compare_refuse_bad_output_paths_before_any_work(synthetic_
     assert sorted(path.name for path in tmp_path.iterdir()) == ["a_file", "estimate.txt", "truth.txt"]
     result = CliRunner().invoke(main, ["evaluate", str(estimate), str(ground_truth), "--plot", str(tmp_path / "new" / "p.png")])
     assert result.exit_code == 0 and (tmp_path / "new" / "p.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_evaluate_never_writes_over_a_runs_own_files(synthetic_sequence_dir, tmp_path):
+    """A run folder's files (its manifest lists them) are the run's: --json RUN/metrics.json would end the run as one
+    that export and report read; what evaluate itself added there it may write again."""
+    from tambridge.run_folder import RunFolder, Start
+
+    run = tmp_path / "run"
+    with RunFolder(run, Start.NEW, ["metrics.json", "trajectory.txt", "report/trajectory.png"]):
+        for name in ("metrics.json", "trajectory.txt"):
+            (run / name).write_bytes((synthetic_sequence_dir / "groundtruth.txt").read_bytes())
+    estimate, truth = run / "trajectory.txt", synthetic_sequence_dir / "groundtruth.txt"
+    before = (run / "metrics.json").read_bytes()
+    for option, name in (("--json", "metrics.json"), ("--json", "manifest.json"), ("--plot", "report/trajectory.png")):
+        result = CliRunner().invoke(main, ["evaluate", str(estimate), str(truth), option, str(run / name)])
+        assert result.exit_code == 2 and result.output == (f"error: {option} {(run / name).resolve()}: is a file of the run in "
+                                                           f"{run.resolve()} (its manifest.json lists it); name another file\n")
+    assert (run / "metrics.json").read_bytes() == before
+    for _ in range(2):  # the default plot beside trajectory.txt, written again
+        result = CliRunner().invoke(main, ["evaluate", str(estimate), str(truth), "--json", str(run / "ate.json")])
+        assert result.exit_code == 0, result.output
+    assert (run / "trajectory.png").is_file() and (run / "ate.json").is_file()
 
 
 @pytest.mark.parametrize("arguments, message", [

@@ -108,6 +108,13 @@ def test_export_mesh_output_is_listed_in_the_manifest(synthetic_sequence_dir, tm
     assert _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", *_set(options)]).exit_code == 0
     assert _run(["export-mesh", str(out), "--format", "obj"]).exit_code == 0
     assert "mesh.obj" in read_manifest(out)
+    assert _run(["export-mesh", str(out), "--format", "obj"]).exit_code == 0  # its own file, written again
+    # A file of the run itself is no target (splats.ply, a .ply too).
+    (out / "splats.ply").write_bytes(b"the run's splats")
+    refused = _run(["export-mesh", str(out), "--format", "ply", "-o", str(out / "splats.ply")])
+    assert refused.exit_code == 2 and refused.output == (f"error: -o {(out / 'splats.ply').resolve()}: is a file of the run "
+                                                         f"in {out.resolve()} (its manifest.json lists it); name another file\n")
+    assert (out / "splats.ply").read_bytes() == b"the run's splats"
     assert _run(["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--overwrite",
                  *_set(options)]).exit_code == 0
     assert not (out / "mesh.obj").exists()
