@@ -159,6 +159,47 @@ def test_download_fetches_and_unpacks_from_a_local_mirror(synthetic_sequence_dir
     assert bad_name.exit_code == 2 and "expected a TUM sequence name" in bad_name.output
 
 
+def _tgz(files: dict[str, bytes]) -> bytes:
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
+        for name, data in files.items():
+            member = tarfile.TarInfo(name)
+            member.size = len(data)
+            tar.addfile(member, io.BytesIO(data))
+    return buffer.getvalue()
+
+
+def test_a_bad_mirror_answer_is_one_line_that_says_what_it_is(tmp_path):
+    """Cut short, not an archive, unsafe, or not a whole sequence: one line each, nothing left in --to."""
+    mirror = tmp_path / "mirror" / "freiburg1"
+    mirror.mkdir(parents=True)
+    whole = _tgz({"rgbd_dataset_freiburg1_a/rgb.txt": b"1.0 rgb/1.png\n", "rgbd_dataset_freiburg1_a/depth.txt": b"",
+                  "rgbd_dataset_freiburg1_a/rgb/1.png": b"x" * 50000, "rgbd_dataset_freiburg1_a/depth/1.png": b"y"})
+    answers = {
+        "cut": (whole[: len(whole) // 2], "archive is corrupt or truncated"),
+        "page": (b"<html>Not here</html>", "not a .tgz archive (an error page?); check --base-url"),
+        "unsafe": (_tgz({"rgbd_dataset_freiburg1_unsafe/rgb.txt": b"", "../escaped.txt": b"x"}), "the archive is unsafe ("),
+        "partial": (_tgz({"rgbd_dataset_freiburg1_partial/rgb.txt": b""}),
+                    "the archive's sequence lacks depth.txt, rgb, depth; not a TUM sequence"),
+    }
+    for name, (data, _) in answers.items():
+        (mirror / f"rgbd_dataset_freiburg1_{name}.tgz").write_bytes(data)
+    server = _serve(tmp_path / "mirror")
+    try:
+        base_url = f"http://127.0.0.1:{server.server_address[1]}"
+        for name, (_, message) in answers.items():
+            result = CliRunner().invoke(main, ["download", f"fr1/{name}", "--to", str(tmp_path / "data"), "--base-url",
+                                               base_url])
+            # (The output holds the test server's request log and the progress bar too.)
+            errors = [line for line in result.output.splitlines() if line.startswith("error: ")]
+            assert result.exit_code == 2 and len(errors) == 1, result.output
+            assert errors[0].startswith(f"error: {base_url}/freiburg1/rgbd_dataset_freiburg1_{name}.tgz: {message}"), \
+                result.output
+    finally:
+        server.shutdown()
+    assert not (tmp_path / "data").exists() and not (tmp_path / "escaped.txt").exists()
+
+
 def test_evaluate_and_compare_refuse_bad_output_paths_before_any_work(synthetic_sequence_dir, tmp_path):
     estimate, ground_truth = tmp_path / "estimate.txt", tmp_path / "truth.txt"
     for path in (estimate, ground_truth):

@@ -14,6 +14,7 @@ from tqdm import tqdm
 from tambridge.errors import TambridgeError
 
 TUM_BASE_URL = "https://cvg.cit.tum.de/rgbd/dataset"
+GZIP_START = b"\x1f\x8b"
 _NAME = re.compile(r"^(?:fr|freiburg)([123])[/_]([a-z0-9_]+)$")
 
 
@@ -73,15 +74,29 @@ def _download_into(url: str, folder_name: str, destination: Path, target: Path, 
                         bar.update(len(chunk))
         except OSError as error:
             raise DownloadError(f"{url}: download failed ({error}); check the network or pass --base-url") from error
+        received = archive.stat().st_size
+        if total is not None and received != total:
+            raise DownloadError(f"{url}: got {received} of {total} bytes (the connection ended early); download it again")
+        with open(archive, "rb") as head:
+            if head.read(2) != GZIP_START:
+                raise DownloadError(f"{url}: not a .tgz archive (an error page?); check --base-url")
         unpacked = Path(temp) / "unpacked"
         try:
             with tarfile.open(archive, "r:gz") as tar:
                 tar.extractall(unpacked, filter="data")
-        except (tarfile.TarError, OSError) as error:
+        except tarfile.FilterError as error:
+            raise DownloadError(f"{url}: the archive is unsafe ({error}); nothing was unpacked from it: check --base-url "
+                                "and the mirror") from error
+        except (tarfile.TarError, OSError, EOFError) as error:
+            # gzip raises EOFError for an archive cut short.
             raise DownloadError(f"{url}: archive is corrupt or truncated ({error}); download it again") from error
         found = [p.parent for p in unpacked.rglob("rgb.txt")]
         if len(found) != 1:
             raise DownloadError(f"{url}: archive holds {len(found)} sequences (folders with rgb.txt), expected one")
+        missing = [name for name in ("depth.txt", "rgb", "depth") if not (found[0] / name).exists()]
+        if missing:
+            raise DownloadError(f"{url}: the archive's sequence lacks {', '.join(missing)}; not a TUM sequence: check "
+                                "--base-url and the mirror")
         if target.exists():
             target.rmdir()  # empty: checked before the download
         found[0].rename(target)
