@@ -285,6 +285,11 @@ DEMO_PREFIX = "tambridge-demo-"
 """The demo's temporary sequence folder starts so; a finished run's metrics.json names its sequence folder."""
 
 
+MAX_SYNTHETIC_SIDE_PX = 4096
+"""The longest side of a synthetic image: the renderer holds a frame's rays in memory (a 100000-pixel side would ask
+for tens of GB)."""
+
+
 def _parse_size(size: str) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in size.lower().split("x"))
@@ -292,6 +297,9 @@ def _parse_size(size: str) -> tuple[int, int]:
         raise click.BadParameter(f"{size!r}: expected WIDTHxHEIGHT, e.g. 160x120", param_hint="--size") from None
     if width < 16 or height < 16:
         raise click.BadParameter(f"{size!r}: images must be at least 16x16", param_hint="--size")
+    if width > MAX_SYNTHETIC_SIDE_PX or height > MAX_SYNTHETIC_SIDE_PX:
+        raise click.BadParameter(f"{size!r}: images must be at most {MAX_SYNTHETIC_SIDE_PX}x{MAX_SYNTHETIC_SIDE_PX}",
+                                 param_hint="--size")
     return width, height
 
 

@@ -200,6 +200,12 @@ def test_a_bad_mirror_answer_is_one_line_that_says_what_it_is(tmp_path):
     assert not (tmp_path / "data").exists() and not (tmp_path / "escaped.txt").exists()
 
 
+def test_synth_refuses_a_size_it_could_not_hold_before_making_anything(tmp_path):
+    result = CliRunner().invoke(main, ["synth", str(tmp_path / "huge"), "--size", "100000x100000", "--frames", "1"])
+    assert result.exit_code == 2 and len(result.output.splitlines()) == 1, result.output
+    assert "'100000x100000': images must be at most 4096x4096" in result.output and not (tmp_path / "huge").exists()
+
+
 def test_evaluate_and_compare_refuse_bad_output_paths_before_any_work(synthetic_sequence_dir, tmp_path):
     estimate, ground_truth = tmp_path / "estimate.txt", tmp_path / "truth.txt"
     for path in (estimate, ground_truth):

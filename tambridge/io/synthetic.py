@@ -265,9 +265,10 @@ def render(
     best_face = np.full(len(rays_world), -1)
     for index, face in enumerate(scene.faces):
         denominator = rays_world @ face.normal
+        # Rays parallel to a face meet it at infinity: their (nan) hits fail the tests below.
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.dot(face.centre_m - origin, face.normal) / denominator
-        hits = origin + t[:, None] * rays_world - face.centre_m
+            hits = origin + t[:, None] * rays_world - face.centre_m
         inside = (
             (t > 1e-6)
             & (np.abs(hits @ face.axis_u) <= face.half_u_m)
