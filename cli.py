@@ -370,6 +370,8 @@ def evaluate(estimate, ground_truth, align, plot, json_path) -> None:
     from tambridge.run_folder import add_to_manifest
     from tambridge.trajectory import read_tum_trajectory
 
+    if Path(estimate).resolve() == Path(ground_truth).resolve():
+        raise TambridgeError(f"{estimate}: is both ESTIMATE and GROUND_TRUTH; give the estimate and the ground truth")
     plot = plot or Path(estimate).with_suffix(".png")
     _check_plot_and_json(plot, json_path, (estimate, ground_truth))
     try:

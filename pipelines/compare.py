@@ -87,9 +87,13 @@ def compare_files(
         monocular = any(_names(name, path) for name in sim3_names) or is_monocular_trajectory_file(path)
         estimates[str(path)] = (read_tum_trajectory(path), "sim3" if monocular else "se3")
     if len(set(estimates)) != len(estimate_paths):
-        raise TrajectoryFormatError("the same trajectory file is named twice")
+        names = [str(Path(path)) for path in estimate_paths]
+        twice = next(name for name in names if names.count(name) > 1)
+        raise TrajectoryFormatError(f"{twice}: named twice; give each trajectory once")
     unknown = [name for name in sim3_names if not any(_names(name, Path(key)) for key in estimates)]
     if unknown:
         raise TrajectoryFormatError(f"--sim3 {unknown[0]!r} names none of the trajectories given "
                                     f"({', '.join(estimates)}); give one's path or its file name without .txt")
+    if any(Path(path).resolve() == Path(ground_truth).resolve() for path in estimate_paths):
+        raise TrajectoryFormatError(f"{ground_truth}: is the ground truth (--gt) and an estimate too; give it once")
     return compare(read_tum_trajectory(ground_truth), estimates, plot_path, title=f"against {ground_truth}")

@@ -27,6 +27,7 @@ from tambridge.export.images import ImageMode, image_camera, image_name, pixels_
 from tambridge.export.mesh import read_mesh
 from tambridge.export.nerfstudio import transforms, write_point_cloud, write_transforms
 from tambridge.export.sparse_map import SparseMap, read_sparse_map
+from tambridge.files import check_new_or_empty_folder
 from tambridge.io.tum import RgbdSequence, open_sequence
 from tambridge.settings import Choice
 from tambridge.trajectory import Trajectory, read_tum_trajectory
@@ -84,8 +85,7 @@ def export_run(run_dir: Path, output_dir: Path | None = None, format: str = "col
     mode = _choice(ImageMode, images, "--images")
     run_dir = Path(run_dir)
     output_dir = Path(output_dir) if output_dir is not None else run_dir / f"export_{export_format}"
-    if output_dir.exists() and (not output_dir.is_dir() or any(output_dir.iterdir())):
-        raise ExportError(f"{output_dir}: exists and is not empty; give another -o or remove it")
+    check_new_or_empty_folder(output_dir, "-o", error=ExportError)
     record = read_run(run_dir)
     frame_indices = select_frames(frames, record)
     camera = image_camera(record.sequence, mode)

@@ -228,6 +228,7 @@ def test_evaluate_and_compare_refuse_bad_output_paths_before_any_work(synthetic_
          f"--plot {tmp_path / 'new' / ('p' * 300 + '.png')}: its part {'p' * 24}... is 304 bytes"),
         (["compare", estimate, "--gt", ground_truth, "--plot", tmp_path / "c.pdf"],
          f"--plot {tmp_path / 'c.pdf'}: the plot is a PNG; name the file *.png"),
+        (["evaluate", estimate, estimate], f"{estimate}: is both ESTIMATE and GROUND_TRUTH"),
     ):
         result = CliRunner().invoke(main, [str(argument) for argument in command])
         assert result.exit_code == 2 and result.output.startswith(f"error: {message}"), result.output

@@ -138,6 +138,10 @@ def test_compare_rejects_a_sim3_name_that_matches_nothing(tmp_path):
         compare_files(tmp_path / "gt.txt", [tmp_path / "gt.txt"], sim3_names=("nope",))
     assert str(refused.value) == (f"--sim3 'nope' names none of the trajectories given ({tmp_path / 'gt.txt'}); give "
                                   "one's path or its file name without .txt")
+    with pytest.raises(TrajectoryFormatError, match=rf"^{tmp_path / 'gt.txt'}: is the ground truth \(--gt\) and an estimate too"):
+        compare_files(tmp_path / "gt.txt", [tmp_path / "gt.txt"])
+    with pytest.raises(TrajectoryFormatError, match=rf"^{tmp_path / 'gt.txt'}: named twice; give each trajectory once$"):
+        compare_files(tmp_path / "other.txt", [tmp_path / "gt.txt", tmp_path / "." / "gt.txt"])
     # The same file however its path is written, or its stem, is named.
     (tmp_path / "a").mkdir()
     write_tum_trajectory(tmp_path / "a" / "t.txt", reference)
