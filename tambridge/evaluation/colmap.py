@@ -91,7 +91,7 @@ def run_colmap(
     """
     if len(timestamps_s) < MIN_COLMAP_IMAGES:
         raise ColmapError(f"COLMAP needs at least {MIN_COLMAP_IMAGES} images, got {len(timestamps_s)}; use a smaller "
-                          "--every")
+                          "--every or a larger --max-frames")
     if workspace is None:
         with tempfile.TemporaryDirectory(prefix="tambridge-colmap-") as temp:
             return run_colmap(images_rgb, timestamps_s, camera, options, Path(temp))
