@@ -441,7 +441,7 @@ def export_mesh(run_dir, mesh_format, output_path) -> None:
 @click.argument("run_dir", type=click.Path(path_type=Path))
 @click.option("--format", "export_format", type=click.Choice(["colmap", "nerfstudio"]), required=True,
               help="colmap: sparse/0/ model and images/ (gsplat, INRIA 3DGS, COLMAP MVS); nerfstudio: transforms.json.")
-@click.option("-o", "--output", "output_dir", type=click.Path(path_type=Path),
+@click.option("-o", "--output", "output_dir", type=click.Path(), callback=_output_folder,
               help="New or empty folder (default: RUN_DIR/export_FORMAT).")
 @click.option("--frames", default="keyframes", show_default=True, metavar="keyframes|all|every:N",
               help="Which frames become images.")
@@ -466,7 +466,8 @@ def export(run_dir, export_format, output_dir, frames, images, text) -> None:
 
 @main.command()
 @click.argument("sequence_dir", type=click.Path(path_type=Path))
-@click.option("-o", "--output", "output_dir", type=click.Path(path_type=Path), required=True, help="Output folder.")
+@click.option("-o", "--output", "output_dir", type=click.Path(), required=True, callback=_output_folder,
+              help="Output folder.")
 @click.option("--every", type=int, default=5, show_default=True, help="Use every n-th frame.")
 @click.option("--max-frames", type=int, help="Use at most this many of those frames.")
 @click.option("--camera", "camera_file", type=click.Path(path_type=Path), help="camera.yaml for a non-TUM camera.")

@@ -433,6 +433,8 @@ def test_bad_input_is_refused_in_one_line_leaving_nothing(run_dir, sequence_dir,
     assert "not empty" in line and [p.name for p in taken.iterdir()] == ["keep.txt"]
     line = _refused([run_dir, "--format", "colmap", "-o", taken / "keep.txt"], tmp_path)
     assert line == f"error: -o {taken / 'keep.txt'}: is a file; give a folder"
+    line = _refused([run_dir, "--format", "colmap", "-o", ""], tmp_path)
+    assert line.startswith("error: Invalid value for '-o' / '--output': is empty (an unset shell variable?)")
 
     no_config = tmp_path / "no_config"
     shutil.copytree(run_dir, no_config)
