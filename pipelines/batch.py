@@ -208,7 +208,8 @@ def run_batch(sequences: Sequence[BatchSequence], out_dir: Path, options: BatchO
     from tambridge.config import check_config, load_config
 
     # A bad preset or --set, or an output folder that is not the batch's, stops it here, not in every task.
-    check_config(load_config(options.preset, options.overrides))
+    config = load_config(options.preset, options.overrides)
+    check_config(config)
     check_batch_folder(out_dir, sequences)
     out_dir = Path(out_dir).resolve()
     preset = None if options.preset is None else str(find_config_file(options.preset).resolve())
@@ -221,6 +222,7 @@ def run_batch(sequences: Sequence[BatchSequence], out_dir: Path, options: BatchO
     for sequence in sequences:
         run_dir = out_dir / sequence.name
         if is_finished(run_dir):
+            check_finished_run_is_this(run_dir, sequence, config)
             before = earlier.get(sequence.name)
             ran = {} if before is None else {"attempts": before.attempts, "resumed": before.resumed,
                                              "wall_s": before.wall_s, "node": before.node, "node_id": before.node_id}
@@ -244,6 +246,32 @@ def run_batch(sequences: Sequence[BatchSequence], out_dir: Path, options: BatchO
     batch["finished"] = _now()
     write_summary(out_dir, list(rows.values()), batch)
     return BatchResult(list(rows.values()), interrupted)
+
+
+def check_finished_run_is_this(run_dir: Path, sequence: BatchSequence, config) -> None:
+    """Raise :class:`TambridgeError` (one line naming ``run_dir``) unless the finished run in it is of ``sequence``
+    with ``config`` as a run of it would record it (config.yaml: the ORB values adapted to its camera; the checkpoint
+    section aside): a batch skips that run as this sequence's, so another folder of the same name, or other
+    settings, would be reported as done."""
+    from tambridge.camera import find_sensor
+    from tambridge.checkpoint import IGNORED_CONFIG_SECTIONS
+    from tambridge.config import config_for_camera, load_config, to_dict
+    from tambridge.evaluation.metrics import read_metrics
+    from tambridge.state import dotted_items
+
+    ran = read_metrics(run_dir / "metrics.json").sequence
+    if Path(ran).resolve() != Path(sequence.folder).resolve():
+        raise TambridgeError(f"{run_dir}: holds a finished run of {ran}, not of {sequence.folder}; give another -o, or "
+                             "remove that run to make this one")
+    camera = find_sensor(sequence.folder, config.input.camera_file).camera
+    wanted, had = (dotted_items({section: values for section, values in to_dict(settings).items()
+                                 if section not in IGNORED_CONFIG_SECTIONS})
+                   for settings in (config_for_camera(config, camera), load_config(run_dir / "config.yaml")))
+    differing = sorted(key for key in wanted.keys() | had.keys() if wanted.get(key) != had.get(key))
+    if differing:
+        key = differing[0]
+        raise TambridgeError(f"{run_dir}: holds a finished run with other settings ({key}: {had.get(key)!r} there, "
+                             f"{wanted.get(key)!r} now); give another -o, or remove that run to make it again")
 
 
 def connect(address: str | None):

@@ -342,3 +342,25 @@ def test_a_batch_runs_on_a_ray_cluster_made_with_ray_start(sequences, tmp_path):
     # One CPU a node and one a run: the two runs ran at once, one on each node.
     assert sorted(cluster[row["node_id"]] for row in rows.values()) == [head_ip, worker_ip]
     assert all(row["node"] == socket.gethostname() for row in rows.values())
+
+
+def test_a_finished_run_is_skipped_only_as_the_same_sequence_with_the_same_settings(synthetic_sequence_dir, tmp_path):
+    """A batch skips OUT/<name> when it holds a finished run: of that very folder, with the settings asked for (as
+    the run records them, ORB values adapted to the camera); else it says which differs, before anything runs."""
+    from pipelines.batch import check_finished_run_is_this
+    from pipelines.reconstruct import reconstruct
+    from tambridge.batch.sequences import BatchSequence
+
+    options = ["mapper.enabled=false", "mesh.enabled=false", "input.max_frames=4", "frontend.orb.mapping_thread=false"]
+    run = tmp_path / "out" / "room"
+    reconstruct(synthetic_sequence_dir, run, load_config(None, options), progress=False)
+    sequence = BatchSequence("room", synthetic_sequence_dir.resolve())
+    check_finished_run_is_this(run, sequence, load_config(None, options))
+    with pytest.raises(TambridgeError, match=rf"^{run}: holds a finished run with other settings \(input\.max_frames: 4 "
+                                             r"there, 5 now\); give another -o"):
+        check_finished_run_is_this(run, sequence, load_config(None, [*options, "input.max_frames=5"]))
+    elsewhere = tmp_path / "elsewhere" / "room"
+    shutil.copytree(synthetic_sequence_dir, elsewhere)
+    with pytest.raises(TambridgeError, match=rf"^{run}: holds a finished run of {synthetic_sequence_dir.resolve()}, not "
+                                             rf"of {elsewhere}; give another -o"):
+        check_finished_run_is_this(run, BatchSequence("room", elsewhere), load_config(None, options))
