@@ -75,8 +75,10 @@ def test_bad_input_exits_with_one_line_and_no_results(tmp_path):
 
 def test_evaluate_prints_a_table_and_writes_a_plot(synthetic_sequence_dir, tmp_path):
     ground_truth = synthetic_sequence_dir / "groundtruth.txt"
+    estimate = tmp_path / "estimate.txt"  # a copy: the same file as both is refused
+    estimate.write_bytes(ground_truth.read_bytes())
     result = CliRunner().invoke(
-        main, ["evaluate", str(ground_truth), str(ground_truth), "--plot", str(tmp_path / "p.png"), "--json", str(tmp_path / "m.json")]
+        main, ["evaluate", str(estimate), str(ground_truth), "--plot", str(tmp_path / "p.png"), "--json", str(tmp_path / "m.json")]
     )
     assert result.exit_code == 0, result.output
     assert "ATE RMSE" in result.output and "0.000 cm" in result.output
