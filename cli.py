@@ -64,6 +64,23 @@ class _Group(click.Group):
             # and another attempt (tambridge batch retries) may succeed.
             _fail(f"{error.filename or 'a file'}: {error.strerror or error}; {fix}",
                   SYSTEM_ERROR_STATUS if error.errno in SYSTEM_ERRNOS else INPUT_ERROR_STATUS)
+        except (ImportError, RuntimeError) as error:
+            # A library that a Ctrl-C interrupted while it loaded may wrap the KeyboardInterrupt in its own error
+            # (pycolmap: "Cannot import the C++ backend"): still a Ctrl-C, not a broken install.
+            if not _caused_by_ctrl_c(error):
+                raise
+            _fail(_STOPPED_BY_CTRL_C)
+
+
+def _caused_by_ctrl_c(error: BaseException) -> bool:
+    """Whether a KeyboardInterrupt lies in ``error``'s chain of causes and contexts."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return False
 
 
 OS_ERROR_FIXES = {

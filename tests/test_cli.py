@@ -377,6 +377,32 @@ def test_ctrl_c_before_a_run_starts_is_one_line_with_the_status_of_sigint(synthe
     assert not (tmp_path / "out").exists()
 
 
+def test_ctrl_c_that_a_library_wraps_while_it_loads_is_the_same_line(synthetic_sequence_dir, tmp_path, monkeypatch):
+    """pycolmap turns a Ctrl-C during its import into ImportError, then RuntimeError ("Cannot import the C++
+    backend"); an error with no Ctrl-C behind it still propagates."""
+    import pipelines.reconstruct
+
+    def interrupted_import(*arguments, **options):
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as interrupt:
+                raise ImportError("initialization failed") from interrupt
+        except ImportError as error:
+            raise RuntimeError("Cannot import the C++ backend") from error
+
+    monkeypatch.setattr(pipelines.reconstruct, "reconstruct", interrupted_import)
+    result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out")])
+    assert (result.exit_code, result.output) == (130, "error: stopped by SIGINT\n")
+
+    def broken(*arguments, **options):
+        raise RuntimeError("a real failure")
+
+    monkeypatch.setattr(pipelines.reconstruct, "reconstruct", broken)
+    result = CliRunner().invoke(main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(tmp_path / "out")])
+    assert result.exit_code == 1 and isinstance(result.exception, RuntimeError)
+
+
 def test_ctrl_c_while_the_arguments_are_parsed_is_the_same_line(monkeypatch):
     """Click would print "Aborted!" and exit 1 for a Ctrl-C in its own argument parsing."""
     def interrupted(*arguments, **options):
