@@ -94,6 +94,11 @@ def compare_files(
     if unknown:
         raise TrajectoryFormatError(f"--sim3 {unknown[0]!r} names none of the trajectories given "
                                     f"({', '.join(estimates)}); give one's path or its file name without .txt")
+    for name in sim3_names:
+        named = [key for key in estimates if _names(name, Path(key))]
+        if len(named) > 1:
+            raise TrajectoryFormatError(f"--sim3 {name!r} names {len(named)} of the trajectories ({', '.join(named)}); "
+                                        "give the path of the one meant")
     if any(Path(path).resolve() == Path(ground_truth).resolve() for path in estimate_paths):
         raise TrajectoryFormatError(f"{ground_truth}: is the ground truth (--gt) and an estimate too; give it once")
     return compare(read_tum_trajectory(ground_truth), estimates, plot_path, title=f"against {ground_truth}")

@@ -142,6 +142,11 @@ def test_compare_rejects_a_sim3_name_that_matches_nothing(tmp_path):
         compare_files(tmp_path / "gt.txt", [tmp_path / "gt.txt"])
     with pytest.raises(TrajectoryFormatError, match=rf"^{tmp_path / 'gt.txt'}: named twice; give each trajectory once$"):
         compare_files(tmp_path / "other.txt", [tmp_path / "gt.txt", tmp_path / "." / "gt.txt"])
+    # A stem that two files share names neither.
+    (tmp_path / "b").mkdir()
+    write_tum_trajectory(tmp_path / "b" / "gt.txt", reference)
+    with pytest.raises(TrajectoryFormatError, match=r"^--sim3 'gt' names 2 of the trajectories \(.*\); give the path of"):
+        compare_files(tmp_path / "other.txt", [tmp_path / "gt.txt", tmp_path / "b" / "gt.txt"], sim3_names=("gt",))
     # The same file however its path is written, or its stem, is named.
     (tmp_path / "a").mkdir()
     write_tum_trajectory(tmp_path / "a" / "t.txt", reference)
