@@ -290,6 +290,20 @@ def test_report_from_another_folder_finds_the_sequence(finished_run, synthetic_s
     assert {"Trajectory", "Renders", "As exported", "Gaussians"} <= set(headings)
 
 
+def test_report_rebuilt_without_its_folder_has_the_viewer_again_and_says_what_is_gone(finished_run, tmp_path, caplog):
+    """report/ deleted: the viewer is written again from splats.ply, from the frames' camera read as the run read it;
+    the renders, which lived only during the run, are gone, and the rebuild says so."""
+    from tambridge.export.web_viewer import RUN_VIEWER_FOLDER, read_viewer_view
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    camera = read_viewer_view(run / RUN_VIEWER_FOLDER)[0]
+    shutil.rmtree(run / "report")
+    index = report_from_run(run).read_text()
+    assert 'src="viewer/index.html"' in index and read_viewer_view(run / RUN_VIEWER_FOLDER)[0] == camera
+    assert f"{run / 'report' / 'renders.png'}: gone: the renders lived only during the run" in caplog.text
+
+
 @pytest.mark.parametrize("frames", [1, 2])
 def test_one_or_two_frame_sequences_end_cleanly(synthetic_sequence_dir, tmp_path, frames):
     options = [option for option in FAST if not option.startswith("input.")] + [f"input.max_frames={frames}"]

@@ -24,6 +24,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from tambridge.camera import Camera, find_sensor  # noqa: E402
+from tambridge.config import load_config  # noqa: E402
+from tambridge.errors import TambridgeError  # noqa: E402
 from tambridge.state import dotted_items  # noqa: E402
 from tambridge.evaluation.colmap import is_monocular_trajectory_file  # noqa: E402
 from tambridge.evaluation.exported import ExportedMap  # noqa: E402
@@ -32,7 +35,7 @@ from tambridge.evaluation.plots import plot_trajectory_errors  # noqa: E402
 from tambridge.evaluation.trajectory import (  # noqa: E402
     WORST_WINDOW_S, TrajectoryErrors, TrajectoryEvaluationError, evaluate_trajectory, worst_error_window,
 )
-from tambridge.export.web_viewer import RUN_VIEWER_FOLDER, VIEWER_FILES, read_viewer_view, write_run_viewer  # noqa: E402
+from tambridge.export.web_viewer import DATA_NAME, RUN_VIEWER_FOLDER, VIEWER_FILES, read_viewer_view, write_run_viewer  # noqa: E402
 from tambridge.files import atomic_path, atomic_write_text  # noqa: E402
 from tambridge.images import rgb_uint8  # noqa: E402
 from tambridge.io.tum import RgbdSequence  # noqa: E402
@@ -146,7 +149,7 @@ def report_from_run(run_dir: Path) -> Path:
     Reads ``metrics.json`` and ``trajectory.txt``; the ground truth is the sequence's ``groundtruth.txt``; a
     COLMAP trajectory is added when ``run_dir/colmap/trajectory.txt`` exists (``tambridge colmap SEQ -o
     RUN_DIR/colmap``). A run's viewer is written again from ``splats.ply`` as it is now (left out, with a warning,
-    where it is gone).
+    where it is gone), from the first view the run gave it (:func:`viewer_camera_of_run`).
     """
     run_dir = Path(run_dir)
     metrics = read_metrics(run_dir / "metrics.json")
@@ -168,15 +171,35 @@ def report_from_run(run_dir: Path) -> Path:
     if metrics.trajectory is not None and not ground_truth_path.is_file():
         logger.warning("%s: not found (the sequence moved?): the rebuilt report has no trajectory section; "
                        "metrics.json keeps the run's ATE", ground_truth_path)
-    web_viewer = (run_dir / RUN_VIEWER_FOLDER / "index.html").is_file()
-    if web_viewer and (run_dir / "splats.ply").is_file():
-        # splats.ply as it is now (cleaned in another tool, say), from the viewer's first view as the run set it.
-        write_run_viewer(run_dir, read_viewer_view(run_dir / RUN_VIEWER_FOLDER)[0])
-    elif web_viewer:
+    web_viewer = False
+    if (run_dir / "splats.ply").is_file():
+        # splats.ply as it is now (cleaned in another tool, say), from the first view the run gave the viewer.
+        camera = viewer_camera_of_run(run_dir)
+        if camera is not None:
+            write_run_viewer(run_dir, camera)
+            web_viewer = True
+        if not (run_dir / "report" / "renders.png").is_file():
+            logger.warning("%s: gone: the renders lived only during the run, so the rebuilt report has none "
+                           "(reconstruct again for them)", run_dir / "report" / "renders.png")
+    elif metrics.map is not None or (run_dir / RUN_VIEWER_FOLDER / "index.html").is_file():
         logger.warning("%s: not found: the rebuilt report has no viewer", run_dir / "splats.ply")
-        web_viewer = False
     return write_report(run_dir / "report", metrics, errors, title=f"tambridge: {metrics.sequence}",
                         web_viewer=web_viewer, keep_figures=True)
+
+
+def viewer_camera_of_run(run_dir: Path) -> Camera | None:
+    """The camera the run's viewer starts with: read back from the viewer the run wrote, else the frames' camera as
+    the run read them (config.yaml's camera file, the sequence folder's own, or the TUM preset); None, with a warning,
+    where neither can be read."""
+    if (run_dir / RUN_VIEWER_FOLDER / DATA_NAME).is_file():
+        return read_viewer_view(run_dir / RUN_VIEWER_FOLDER)[0]
+    try:
+        camera_file = load_config(run_dir / "config.yaml").input.camera_file
+        sequence = Path(read_metrics(run_dir / "metrics.json").sequence)
+        return find_sensor(sequence, None if camera_file is None else Path(camera_file)).camera.undistorted()
+    except TambridgeError as error:
+        logger.warning("the rebuilt report has no viewer: the frames' camera could not be read (%s)", error)
+        return None
 
 
 def format_metric(value: object) -> str:
