@@ -6,6 +6,7 @@ import errno
 import json
 import logging
 import os
+import shutil
 import signal
 import sys
 import tempfile
@@ -369,7 +370,18 @@ def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_su
                            supersampling=supersampling, seed=seed,
                            colour_baseline_m=colour_baseline, colour_focal_scale=colour_focal_scale,
                            depth_delay_s=depth_delay, rolling_shutter_s=rolling_shutter)
-    write_synthetic_sequence(output_dir, options)
+    # Rendered into a hidden folder beside it and renamed at the end: a stopped synth leaves no partial sequence.
+    output_dir = Path(output_dir)
+    output_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{output_dir.name}.", suffix=".partial", dir=output_dir.parent))
+    try:
+        write_synthetic_sequence(staging, options)
+        if output_dir.exists():
+            output_dir.rmdir()  # empty: checked above
+        os.rename(staging, output_dir)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
     click.echo(f"wrote {frames} frames to {output_dir}")
 
 

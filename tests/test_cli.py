@@ -208,6 +208,22 @@ def test_synth_refuses_a_size_it_could_not_hold_before_making_anything(tmp_path)
     assert "'100000x100000': images must be at most 4096x4096" in result.output and not (tmp_path / "huge").exists()
 
 
+def test_a_stopped_synth_leaves_no_partial_sequence(tmp_path, monkeypatch):
+    import tambridge.io.synthetic as synthetic
+
+    def stopped_midway(folder, options):
+        (folder / "rgb").mkdir(parents=True)
+        (folder / "rgb" / "0.png").write_bytes(b"a frame")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(synthetic, "write_synthetic_sequence", stopped_midway)
+    for target in (tmp_path / "new", tmp_path / "empty"):
+        (tmp_path / "empty").mkdir(exist_ok=True)
+        result = CliRunner().invoke(main, ["synth", str(target), "--frames", "2"])
+        assert (result.exit_code, result.output) == (130, "error: stopped by SIGINT\n")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["empty"] and not any((tmp_path / "empty").iterdir())
+
+
 def test_evaluate_and_compare_refuse_bad_output_paths_before_any_work(synthetic_sequence_dir, tmp_path):
     estimate, ground_truth = tmp_path / "estimate.txt", tmp_path / "truth.txt"
     for path in (estimate, ground_truth):
