@@ -23,9 +23,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 
 from tambridge.camera import Camera, find_sensor  # noqa: E402
-from tambridge.config import load_config  # noqa: E402
 from tambridge.errors import TambridgeError  # noqa: E402
 from tambridge.state import dotted_items  # noqa: E402
 from tambridge.evaluation.colmap import is_monocular_trajectory_file  # noqa: E402
@@ -194,10 +194,11 @@ def viewer_camera_of_run(run_dir: Path) -> Camera | None:
     if (run_dir / RUN_VIEWER_FOLDER / DATA_NAME).is_file():
         return read_viewer_view(run_dir / RUN_VIEWER_FOLDER)[0]
     try:
-        camera_file = load_config(run_dir / "config.yaml").input.camera_file
+        # The one key of config.yaml needed here, read as YAML: the config layer lies above this one.
+        camera_file = yaml.safe_load((run_dir / "config.yaml").read_text())["input"]["camera_file"]
         sequence = Path(read_metrics(run_dir / "metrics.json").sequence)
         return find_sensor(sequence, None if camera_file is None else Path(camera_file)).camera.undistorted()
-    except TambridgeError as error:
+    except (TambridgeError, OSError, yaml.YAMLError, KeyError, TypeError) as error:
         logger.warning("the rebuilt report has no viewer: the frames' camera could not be read (%s)", error)
         return None
 
