@@ -6,7 +6,6 @@ import errno
 import json
 import logging
 import os
-import shutil
 import signal
 import sys
 import tempfile
@@ -356,7 +355,7 @@ def _parse_size(size: str) -> tuple[int, int]:
 def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_subframes, rotation_bursts, burst_speed,
           burst_duration, supersampling, colour_baseline, colour_focal_scale, depth_delay, rolling_shutter, seed) -> None:
     """Write a synthetic TUM-layout sequence (textured room, closed loop) with exact ground truth."""
-    from tambridge.files import check_new_or_empty_folder
+    from tambridge.files import check_new_or_empty_folder, staged_folder
     from tambridge.io.synthetic import RotationBursts, SynthOptions, write_synthetic_sequence
 
     width, height = _parse_size(size)
@@ -370,18 +369,9 @@ def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_su
                            supersampling=supersampling, seed=seed,
                            colour_baseline_m=colour_baseline, colour_focal_scale=colour_focal_scale,
                            depth_delay_s=depth_delay, rolling_shutter_s=rolling_shutter)
-    # Rendered into a hidden folder beside it and renamed at the end: a stopped synth leaves no partial sequence.
-    output_dir = Path(output_dir)
-    output_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{output_dir.name}.", suffix=".partial", dir=output_dir.parent))
-    try:
+    # A stopped synth leaves no partial sequence.
+    with staged_folder(output_dir) as staging:
         write_synthetic_sequence(staging, options)
-        if output_dir.exists():
-            output_dir.rmdir()  # empty: checked above
-        os.rename(staging, output_dir)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging)
     click.echo(f"wrote {frames} frames to {output_dir}")
 
 

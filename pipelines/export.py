@@ -10,9 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +24,7 @@ from tambridge.export.images import ImageMode, image_camera, image_name, pixels_
 from tambridge.export.mesh import read_mesh
 from tambridge.export.nerfstudio import transforms, write_point_cloud, write_transforms
 from tambridge.export.sparse_map import SparseMap, read_sparse_map
-from tambridge.files import check_new_or_empty_folder
+from tambridge.files import check_new_or_empty_folder, staged_folder
 from tambridge.io.tum import RgbdSequence, open_sequence
 from tambridge.settings import Choice
 from tambridge.trajectory import Trajectory, read_tum_trajectory
@@ -90,20 +87,12 @@ def export_run(run_dir: Path, output_dir: Path | None = None, format: str = "col
     frame_indices = select_frames(frames, record)
     camera = image_camera(record.sequence, mode)
     points = export_points(record)
-    output_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{output_dir.name}.", suffix=".partial", dir=output_dir.parent))
-    try:
+    with staged_folder(output_dir) as staging:
         if export_format == ExportFormat.colmap:
             observations = write_colmap(staging, record, frame_indices, camera, mode, points, text)
         else:
             write_nerfstudio(staging, record, frame_indices, camera, mode, points)
             observations = None
-        if output_dir.exists():
-            output_dir.rmdir()
-        os.rename(staging, output_dir)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging)
     logger.info("exported %d images and %d points (%s) to %s", len(frame_indices), len(points.world_m), points.source,
                 output_dir)
     return ExportResult(output_dir, len(frame_indices), len(points.world_m), points.source,

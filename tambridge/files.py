@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Hashable, Iterable, Iterator
@@ -36,6 +37,23 @@ def atomic_path(path: Path) -> Iterator[Path]:
     finally:
         if temp_path.exists():
             temp_path.unlink()
+
+
+@contextlib.contextmanager
+def staged_folder(path: Path) -> Iterator[Path]:
+    """Yield a hidden folder beside ``path`` (a folder yet to be made or an empty one: the caller checks); on success
+    it is renamed to ``path``, on error or a stop removed, so that a writer that fails leaves nothing behind."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    try:
+        yield staging
+        if path.exists():
+            path.rmdir()
+        os.rename(staging, path)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
 
 
 def atomic_write_text(path: Path, text: str) -> None:
