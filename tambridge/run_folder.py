@@ -75,9 +75,14 @@ def check_output_folder(path: Path, start: Start, resumable: Iterable[str]) -> N
 
 def read_manifest(folder: Path) -> list[str]:
     """The relative paths an earlier run into ``folder`` listed (empty without a manifest)."""
+    return list(_manifest_document(folder)["files"])
+
+
+def _manifest_document(folder: Path) -> dict:
+    """``folder``'s manifest, checked (``files`` empty without one); errors name it and say what to do."""
     manifest = Path(folder) / MANIFEST_NAME
     if not manifest.is_file():
-        return []
+        return {"files": []}
     try:
         document = json.loads(manifest.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as error:
@@ -91,7 +96,7 @@ def read_manifest(folder: Path) -> list[str]:
         relative = Path(name)
         if relative.is_absolute() or ".." in relative.parts:
             raise OutputFolderError(f"{manifest}: lists {name!r}, outside its folder; remove the folder's files by hand")
-    return list(document["files"])
+    return document
 
 
 def check_not_a_runs_own_file(path: Path, option: str) -> None:
@@ -102,16 +107,14 @@ def check_not_a_runs_own_file(path: Path, option: str) -> None:
     folder = next((parent for parent in path.parents if (parent / MANIFEST_NAME).is_file()), None)
     if folder is None:
         return
-    relative = str(path.relative_to(folder))
-    if relative in (MANIFEST_NAME, LOCK_NAME) or (relative in read_manifest(folder)
-                                                   and relative not in _added_to_manifest(folder)):
+    relative, document = str(path.relative_to(folder)), _manifest_document(folder)
+    if relative in (MANIFEST_NAME, LOCK_NAME) or (relative in document["files"] and relative not in _added(document)):
         raise OutputFolderError(f"{option} {path}: is a file of the run in {folder} (its {MANIFEST_NAME} lists it); "
                                 "name another file")
 
 
-def _added_to_manifest(folder: Path) -> list[str]:
-    """The files of ``folder``'s manifest that commands after the run added (:func:`add_to_manifest`)."""
-    document = json.loads((Path(folder) / MANIFEST_NAME).read_text(encoding="utf-8"))
+def _added(document: dict) -> list[str]:
+    """The files of a manifest ``document`` that commands after the run added (:func:`add_to_manifest`)."""
     added = document.get("added", [])
     return [name for name in added if isinstance(name, str)] if isinstance(added, list) else []
 
@@ -129,10 +132,11 @@ def add_to_manifest(folder: Path, written: Path) -> None:
     folder, written = Path(folder).resolve(), Path(written).resolve()
     if not (folder / MANIFEST_NAME).is_file() or folder not in written.parents:
         return
-    files, added = read_manifest(folder), _added_to_manifest(folder)
+    document = _manifest_document(folder)
     relative = str(written.relative_to(folder))
-    if relative not in files:
-        document = {"format": MANIFEST_FORMAT, "files": [*files, relative], "added": [*added, relative]}
+    if relative not in document["files"]:
+        document = {"format": MANIFEST_FORMAT, "files": [*document["files"], relative],
+                    "added": [*_added(document), relative]}
         atomic_write_text(folder / MANIFEST_NAME, json.dumps(document, indent=2) + "\n")
 
 
