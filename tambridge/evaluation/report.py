@@ -174,7 +174,7 @@ def report_from_run(run_dir: Path) -> Path:
     web_viewer = False
     if (run_dir / "splats.ply").is_file():
         # splats.ply as it is now (cleaned in another tool, say), from the first view the run gave the viewer.
-        camera = viewer_camera_of_run(run_dir)
+        camera = viewer_camera_of_run(run_dir, Path(metrics.sequence))
         if camera is not None:
             write_run_viewer(run_dir, camera)
             web_viewer = True
@@ -187,16 +187,15 @@ def report_from_run(run_dir: Path) -> Path:
                         web_viewer=web_viewer, keep_figures=True)
 
 
-def viewer_camera_of_run(run_dir: Path) -> Camera | None:
+def viewer_camera_of_run(run_dir: Path, sequence: Path) -> Camera | None:
     """The camera the run's viewer starts with: read back from the viewer the run wrote, else the frames' camera as
-    the run read them (config.yaml's camera file, the sequence folder's own, or the TUM preset); None, with a warning,
-    where neither can be read."""
+    the run read them from its ``sequence`` folder (config.yaml's camera file, the folder's own, or the TUM preset);
+    None, with a warning, where neither can be read."""
     if (run_dir / RUN_VIEWER_FOLDER / DATA_NAME).is_file():
         return read_viewer_view(run_dir / RUN_VIEWER_FOLDER)[0]
     try:
         # The one key of config.yaml needed here, read as YAML: the config layer lies above this one.
         camera_file = yaml.safe_load((run_dir / "config.yaml").read_text())["input"]["camera_file"]
-        sequence = Path(read_metrics(run_dir / "metrics.json").sequence)
         return find_sensor(sequence, None if camera_file is None else Path(camera_file)).camera.undistorted()
     except (TambridgeError, OSError, yaml.YAMLError, KeyError, TypeError) as error:
         logger.warning("the rebuilt report has no viewer: the frames' camera could not be read (%s)", error)
