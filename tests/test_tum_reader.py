@@ -213,9 +213,12 @@ def test_an_associations_file_alone_is_named_with_commands_that_make_the_index_f
 
 
 @pytest.mark.parametrize("stamps, unit, factor", [((1305031102175.0, 1305031102208.0), "milliseconds", "1000"),
-                                                  ((1305031102175304000.0, 1305031102208564000.0), "nanoseconds", "1e+09")])
+                                                  ((1305031102175304000.0, 1305031102208564000.0), "nanoseconds", "1e+09"),
+                                                  ((1305031102175304.0, 1305031102208564.0), "microseconds", "1e+06"),
+                                                  ((1305031102175000000.0, 1305031102180000000.0), "nanoseconds", "1e+09")])
 def test_stamps_in_another_unit_than_seconds_are_named(tmp_path, stamps, unit, factor):
-    """A recorder's milli- or nanoseconds: the frames would lie 33 units apart, a camera half a minute apart."""
+    """A recorder's milli-, micro- or nanoseconds: a 30 Hz camera's frames would lie 33 units apart, half a minute;
+    a 200 Hz camera's nanoseconds (5e6 apart) are named as such, not as a 0.2 Hz camera's microseconds."""
     _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6, rgb_stamps=stamps, depth_stamps=stamps)
     with pytest.raises(SequenceFormatError, match=rf"rgb\.txt: its frames lie .* apart \(median\); timestamps must be in "
                                                   rf"seconds, and these look like {unit}: divide them by {re.escape(factor)}$"):

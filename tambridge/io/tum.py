@@ -465,21 +465,26 @@ def open_sequence(
 
 MAX_FRAME_INTERVAL_S = 10.0
 """Median time between an index file's frames above which its stamps are taken for another unit than seconds."""
-STAMP_UNITS = ((1e7, "nanoseconds", 1e9), (1e4, "microseconds", 1e6), (MAX_FRAME_INTERVAL_S, "milliseconds", 1e3))
-"""(median interval at or above which, the unit it suggests, its count per second), largest first."""
+STAMP_UNITS = (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9))
+"""The units a recorder's stamps may be in, with their count per second."""
+TYPICAL_FRAME_INTERVAL_S = 1.0 / 30.0
+"""An RGB-D camera's usual frame interval: stamps in another unit are read in the one that brings them nearest it."""
 
 
 def check_stamps_in_seconds(stamps: np.ndarray, path: Path) -> None:
     """Raise :class:`SequenceFormatError` naming ``path`` where its frames lie :data:`MAX_FRAME_INTERVAL_S` or more
     apart (median): TUM's stamps are seconds, and a recorder's milli- to nanoseconds would pass for a camera a day
-    apart, failing later as stamps that match nothing, or with frame intervals of years."""
+    apart, failing later as stamps that match nothing, or with frame intervals of years. The unit the message names
+    is the one whose interval lies nearest :data:`TYPICAL_FRAME_INTERVAL_S` by ratio (5e6 apart: a 200 Hz camera's
+    nanoseconds, not a 0.2 Hz camera's microseconds)."""
     if len(stamps) < 2:
         return
     interval = float(np.median(np.diff(np.sort(stamps))))
-    for threshold, unit, per_second in STAMP_UNITS:
-        if interval >= threshold:
-            raise SequenceFormatError(f"{path}: its frames lie {interval:.6g} apart (median); timestamps must be in "
-                                      f"seconds, and these look like {unit}: divide them by {per_second:g}")
+    if interval < MAX_FRAME_INTERVAL_S:
+        return
+    unit, per_second = min(STAMP_UNITS, key=lambda unit: abs(np.log(interval / unit[1] / TYPICAL_FRAME_INTERVAL_S)))
+    raise SequenceFormatError(f"{path}: its frames lie {interval:.6g} apart (median); timestamps must be in "
+                              f"seconds, and these look like {unit}: divide them by {per_second:g}")
 
 
 def check_first_frame(sequence: RgbdSequence) -> None:
