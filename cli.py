@@ -466,7 +466,8 @@ def export_mesh(run_dir, mesh_format, output_path) -> None:
               help="Which frames become images.")
 @click.option("--images", type=click.Choice(["copy", "link", "undistort"]), default="copy", show_default=True,
               help="Copy or symlink the colour files (camera with their distortion), or write them undistorted as the "
-                   "run saw them (pinhole; what trainers without distortion need, e.g. for TUM fr1).")
+                   "run saw them, cropped to the pixels with data around the principal point (pinhole; what "
+                   "trainers without distortion need, e.g. for TUM fr1).")
 @click.option("--text", is_flag=True, help="Also write COLMAP's .txt model files.")
 def export(run_dir, export_format, output_dir, frames, images, text) -> None:
     """Export a finished reconstruct run (RUN_DIR) as a COLMAP model or nerfstudio data, for offline training."""
@@ -474,11 +475,8 @@ def export(run_dir, export_format, output_dir, frames, images, text) -> None:
 
     result = export_run(run_dir, output_dir, export_format, frames, images, text)
     tracks = f" ({result.observations} observations in their tracks)" if result.observations else ""
-    if result.observations == 0 and result.images < 2:
-        tracks = " (none with a track: a track needs two images)"
-    elif result.observations == 0:
-        # Tracks come from the keyframes' observations: frames that are not keyframes give none.
-        tracks = " (none with a track: no point is seen in two of these images that are keyframes; --frames keyframes gives tracks)"
+    if result.observations == 0:
+        tracks = " (none with a track: a track needs a point seen in two images)"
     click.echo(f"wrote {result.images} images and {result.points} points{tracks} to {result.output_dir}")
     click.echo(f"points: {result.points_source}")
 

@@ -23,7 +23,7 @@ from tambridge.export.colmap_model import ModelImage, build_model, write_model
 from tambridge.export.images import ImageMode, image_camera, image_name, pixels_in_images, write_frames
 from tambridge.export.mesh import read_mesh
 from tambridge.export.nerfstudio import transforms, write_point_cloud, write_transforms
-from tambridge.export.sparse_map import SparseMap, read_sparse_map
+from tambridge.export.sparse_map import SparseMap, points_seen, read_sparse_map
 from tambridge.files import check_new_or_empty_folder, staged_folder
 from tambridge.io.tum import RgbdSequence, open_sequence
 from tambridge.settings import Choice
@@ -177,16 +177,28 @@ def export_points(record: RunRecord) -> Points:
 
 def write_colmap(folder: Path, record: RunRecord, frame_indices: list[int], camera: Camera, mode: ImageMode,
                  points: Points, text: bool) -> int:
-    """``folder/images/`` and ``folder/sparse/0/``; returns the number of point observations in the model."""
+    """``folder/images/`` and ``folder/sparse/0/``; returns the number of point observations in the model.
+
+    A keyframe's image holds its recorded keypoints; any other frame's the map points it sees by its pose and depth
+    (:func:`points_seen`), so that every image has points (gsplat's depth loss looks each image's up)."""
     names = [image_name(index, mode, record.sequence) for index in frame_indices]
     write_frames(record.sequence, frame_indices, names, mode, folder / "images")
     keyframe_of_frame = {frame: keyframe for keyframe, frame in record.sparse_map.keyframe_frame_indices.items()}
     observations = record.sparse_map.observations
     images = []
     for index, name in zip(frame_indices, names):
-        seen = observations.keyframe_ids == keyframe_of_frame.get(index, -1) if points.tracked else np.zeros(len(observations), bool)
-        images.append(ModelImage(name, record.trajectory.world_from_camera[index], observations.point_rows[seen],
-                                 pixels_in_images(observations.keypoints_px[seen], camera)))
+        world_from_camera = record.trajectory.world_from_camera[index]
+        if not points.tracked:
+            rows, pixels_px = np.zeros(0, np.int64), np.zeros((0, 2))
+        elif index in keyframe_of_frame:
+            seen = observations.keyframe_ids == keyframe_of_frame[index]
+            rows, pixels_px = observations.point_rows[seen], observations.keypoints_px[seen]
+        else:
+            rows, pixels_px = points_seen(points.world_m, world_from_camera, record.sequence.camera,
+                                          record.sequence.frame_depth_m(index))
+        pixels_px = pixels_in_images(pixels_px, record.sequence, mode)
+        inside = camera.in_image(pixels_px)
+        images.append(ModelImage(name, world_from_camera, rows[inside], pixels_px[inside]))
     model = build_model(camera, images, points.world_m, points.colours)
     write_model(model, folder / "sparse" / "0", text)
     return int(model.compute_num_observations())

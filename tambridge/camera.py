@@ -158,9 +158,9 @@ class Camera:
         """The same intrinsics with no distortion (what frames are after undistortion)."""
         return dataclasses.replace(self, distortion=(0.0, 0.0, 0.0, 0.0, 0.0))
 
-    def rows(self, start: int, stop: int) -> "Camera":
-        """The camera of the image's rows ``start`` to ``stop`` (exclusive): a crop, same rays."""
-        return dataclasses.replace(self, height=stop - start, cy=self.cy - start)
+    def cropped(self, top: int, bottom: int, left: int, right: int) -> "Camera":
+        """The camera of the image's rows ``top:bottom`` and columns ``left:right`` (ends exclusive): a crop, same rays."""
+        return dataclasses.replace(self, width=right - left, height=bottom - top, cx=self.cx - left, cy=self.cy - top)
 
     def scaled(self, factor: float) -> "Camera":
         """Intrinsics of the image resized by ``factor`` (pixel-centre convention of cv2.resize)."""

@@ -2,8 +2,9 @@
 
 ``copy`` and ``link`` hand on the sequence's own colour files, so their camera is the sensor's, distortion and
 all; ``undistort`` writes the frames as the run saw them (undistorted, colour resampled into the depth camera
-for an unregistered sensor), in the run's pinhole camera. The run's keypoints are pixels of the latter:
-:func:`pixels_in_images` moves them into the former. Pixels follow OpenCV's convention (:mod:`tambridge.camera`).
+for an unregistered sensor), cropped to :func:`undistorted_window`: no pixel without data, and the principal point at
+the image's centre, in a pinhole camera. The run's keypoints are pixels of its frames: :func:`pixels_in_images`
+moves them into the exported images. Pixels follow OpenCV's convention (:mod:`tambridge.camera`).
 """
 
 from __future__ import annotations
@@ -32,21 +33,52 @@ class ImageMode(Choice):
     undistort = "undistort"
 
 
+def undistorted_window(sequence: RgbdSequence) -> tuple[int, int, int, int]:
+    """``(top, bottom, left, right)``: the largest window of the run's frames inside ``sequence.valid_region`` (every
+    pixel has data: no black border where undistortion or colour registration sampled outside the sensor's image)
+    whose centre lies within half a pixel of the principal point. The INRIA 3DGS trainer, for one, ignores COLMAP's
+    principal point and takes the image's centre; fr1's cy is 15 px off it."""
+    top, bottom, left, right = sequence.valid_region
+    camera = sequence.camera
+    rows = _centred_span(camera.cy, top, bottom)
+    columns = _centred_span(camera.cx, left, right)
+    if rows is None or columns is None:
+        raise ExportError(f"{sequence.folder}: the principal point ({camera.cx:.1f}, {camera.cy:.1f}) lies outside the "
+                          f"pixels the frames have data for (rows {top}-{bottom}, columns {left}-{right}); export with "
+                          "--images copy")
+    return rows[0], rows[1], columns[0], columns[1]
+
+
+def _centred_span(centre_px: float, start: int, stop: int) -> tuple[int, int] | None:
+    """The longest ``[first, last)`` inside ``[start, stop)`` whose middle, ``(first + last - 1) / 2``, is within half a
+    pixel of ``centre_px``; None when none is."""
+    for length in range(stop - start, 0, -1):
+        first = int(np.floor(centre_px - (length - 1) / 2 + 0.5))
+        if start <= first and first + length <= stop:
+            return first, first + length
+    return None
+
+
 def image_camera(sequence: RgbdSequence, mode: ImageMode) -> Camera:
     """The camera of the images ``mode`` gives: the sensor's (with its distortion) for copy and link, the run's
-    undistorted pinhole camera for undistort; copying an unregistered sensor's colour is refused."""
+    undistorted pinhole camera cropped to :func:`undistorted_window` for undistort; copying an unregistered sensor's
+    colour is refused."""
     if mode == ImageMode.undistort:
-        return sequence.camera
+        return sequence.camera.cropped(*undistorted_window(sequence))
     if sequence.sensor.colour_camera is not None:
         raise ExportError(f"{sequence.folder}: colour is not registered to depth, so its images are not in the run's "
                           "camera; export with --images undistort (colour resampled into the depth camera)")
     return sequence.sensor.camera
 
 
-def pixels_in_images(pixels_px: np.ndarray, camera: Camera) -> np.ndarray:
-    """Pixels (N, 2) of the run's undistorted camera (``camera`` without distortion) in images of ``camera``:
-    the same rays through ``camera``'s distortion (OpenCV's model), unchanged when it has none."""
+def pixels_in_images(pixels_px: np.ndarray, sequence: RgbdSequence, mode: ImageMode) -> np.ndarray:
+    """Pixels (N, 2) of the run's frames (undistorted) in the images ``mode`` exports: shifted into the window of
+    undistort, or the same rays through the sensor's distortion (OpenCV's model) for copy and link."""
     pixels_px = np.asarray(pixels_px, np.float64).reshape(-1, 2)
+    if mode == ImageMode.undistort:
+        top, _, left, _ = undistorted_window(sequence)
+        return pixels_px - np.array([left, top], np.float64)
+    camera = image_camera(sequence, mode)
     if not camera.has_distortion or len(pixels_px) == 0:
         return pixels_px.copy()
     rays = camera.undistorted().backproject(pixels_px, 1.0)
@@ -62,11 +94,13 @@ def write_frames(sequence: RgbdSequence, frame_indices: list[int], names: list[s
     image_dir.mkdir(parents=True, exist_ok=True)
     if depth_dir is not None:
         depth_dir.mkdir(parents=True, exist_ok=True)
+    window = undistorted_window(sequence) if mode == ImageMode.undistort else None
     for index, name in zip(frame_indices, names):
-        if mode == ImageMode.undistort:
+        if window is not None:
             frame = sequence[index]
-            _write_png(image_dir / name, cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-            depth_m = frame.depth_m if depth_dir is not None else None
+            top, bottom, left, right = window
+            _write_png(image_dir / name, cv2.cvtColor(frame.rgb[top:bottom, left:right], cv2.COLOR_RGB2BGR))
+            depth_m = frame.depth_m[top:bottom, left:right] if depth_dir is not None else None
         else:
             source = sequence.rgb_paths[index].resolve()
             if not source.is_file():

@@ -14,9 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
+from tambridge.camera import Camera
 from tambridge.errors import ExportError
 from tambridge.files import atomic_path
 from tambridge.frontend.contract import FrontendResult, MapPointObservations
+from tambridge.geometry import inverse, transform_points
+
+SEEN_DEPTH_TOLERANCE = 0.05
+"""A frame that is no keyframe is taken to see a map point where its measured depth at the point's pixel is within
+this fraction of the point's depth: Kinect depth is noisy by about 1.5 % at 2 m, and a hidden point lies further."""
 
 
 @dataclasses.dataclass
@@ -65,3 +71,20 @@ def read_sparse_map(path: Path) -> SparseMap:
         )
     except (KeyError, ValueError, OSError, zipfile.BadZipFile) as error:
         raise ExportError(f"{path}: not a sparse map of 'tambridge reconstruct' ({error}); re-run the reconstruction") from None
+
+
+def points_seen(points_world_m: np.ndarray, world_from_camera: np.ndarray, camera: Camera,
+                depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The map points a frame sees that its keypoints were not recorded for (it is no keyframe): rows (M,) of
+    ``points_world_m`` (P, 3) in front of the frame at ``world_from_camera`` (4, 4), inside ``camera``'s image and
+    where the frame's ``depth_m`` (H, W) metres measures them (:data:`SEEN_DEPTH_TOLERANCE`), with their pixels
+    (M, 2) there."""
+    points_camera_m = transform_points(inverse(world_from_camera), np.asarray(points_world_m, np.float64).reshape(-1, 3))
+    z_m = points_camera_m[:, 2]
+    in_front = z_m > 0
+    pixels_px = camera.project(points_camera_m, np.where(in_front, z_m, 1.0))
+    rows = np.flatnonzero(in_front & camera.in_image(pixels_px))
+    columns, image_rows = np.round(pixels_px[rows]).astype(np.int64).T
+    measured_m = depth_m[image_rows, columns]
+    agree = (measured_m > 0) & (np.abs(z_m[rows] - measured_m) <= SEEN_DEPTH_TOLERANCE * measured_m)
+    return rows[agree], pixels_px[rows[agree]]

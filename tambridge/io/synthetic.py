@@ -358,7 +358,7 @@ def render_rolling_shutter(colour_taken: Callable[[float, Camera], np.ndarray], 
     for start, stop in zip(edges[:-1], edges[1:]):
         middle_row = (start + stop - 1) / 2.0
         offset_s = float(rolling_shutter_row_times_s(np.array([middle_row]), camera.height, readout_s)[0])
-        bands.append(colour_taken(offset_s, camera.rows(int(start), int(stop))))
+        bands.append(colour_taken(offset_s, camera.cropped(int(start), int(stop), 0, camera.width)))
     return np.concatenate(bands, axis=0)
 
 

@@ -203,13 +203,21 @@ class RgbdSequence:
         rgb = self.read_rgb(self.rgb_paths[index])
         depth_m = self.read_depth_m(self.depth_paths[index])
         rgb = self._colour_in_frame(rgb, self.rgb_paths[index], depth_m, self.depth_paths[index])
-        if self._undistort_maps is not None:
-            map_x, map_y = self._undistort_maps
-            # Nearest neighbour: blending depth across an edge invents surfaces that do not exist.
-            depth_m = cv2.remap(depth_m, map_x, map_y, cv2.INTER_NEAREST)
+        depth_m = self._depth_in_frame(depth_m)
         depth_stamp = None if self.depth_timestamps_s is None else float(self.depth_timestamps_s[index])
         return Frame(index=index, timestamp_s=float(self.timestamps_s[index]), rgb=rgb, depth_m=depth_m,
                      depth_timestamp_s=depth_stamp)
+
+    def frame_depth_m(self, index: int) -> np.ndarray:
+        """Frame ``index``'s depth (H, W) metres alone, as ``self[index].depth_m`` (undistorted), without its colour."""
+        return self._depth_in_frame(self.read_depth_m(self.depth_paths[index]))
+
+    def _depth_in_frame(self, depth_m: np.ndarray) -> np.ndarray:
+        """The depth image as read, undistorted where the camera has distortion."""
+        if self._undistort_maps is None:
+            return depth_m
+        # Nearest neighbour: blending depth across an edge invents surfaces that do not exist.
+        return cv2.remap(depth_m, *self._undistort_maps, cv2.INTER_NEAREST)
 
     @property
     def has_sharp_rgb(self) -> bool:
