@@ -376,6 +376,24 @@ def synth(output_dir, frames, size, depth_noise, colour_noise, exposure, blur_su
 
 
 @main.command()
+@click.argument("folder", type=click.Path(path_type=Path))
+@click.option("--rate", type=float, required=True, metavar="HZ",
+              help="The camera's frames per second: frame i gets the timestamp i / HZ.")
+@click.option("--depth-scale", type=float, default=None,
+              help="Depth units per metre (1000 for millimetres), for the camera.yaml made from Open3D's "
+                   "camera_intrinsic.json where the folder has one.")
+def index(folder, rate, depth_scale) -> None:
+    """Make FOLDER of colour and depth images (color/ and depth/, as Open3D's recorder writes them) a TUM-layout
+    sequence: write its rgb.txt and depth.txt, pairing images by name, and camera.yaml from Open3D's intrinsics."""
+    from tambridge.io.image_folders import write_tum_index
+
+    images = write_tum_index(folder, rate, depth_scale)
+    camera = f", camera.yaml from {images.open3d_intrinsic.name}" if images.open3d_intrinsic is not None else ""
+    unpaired = f" ({len(images.rgb_only)} colour images without depth listed in rgb.txt only)" if images.rgb_only else ""
+    click.echo(f"wrote rgb.txt and depth.txt of {len(images.rgb_names)} frames{unpaired}{camera} to {folder}")
+
+
+@main.command()
 @click.argument("estimate", type=click.Path(path_type=Path))
 @click.argument("ground_truth", type=click.Path(path_type=Path))
 @click.option("--align", type=click.Choice(["se3", "sim3", "none"]), default="se3", show_default=True)

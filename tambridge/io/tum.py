@@ -17,6 +17,7 @@ import PIL.Image
 from tambridge.camera import Camera, RgbdSensor, find_sensor
 from tambridge.errors import SequenceFormatError
 from tambridge.files import read_text_file
+from tambridge.io.image_folders import find_image_folders
 from tambridge.io.registration import ColourToDepth
 from tambridge.trajectory import Trajectory, read_tum_trajectory
 
@@ -402,6 +403,14 @@ def check_sequence_folder(folder: Path) -> None:
                 f"{folder}: has associations.txt but no rgb.txt or depth.txt; write them from it (for TUM's "
                 "'rgb_time rgb_file depth_time depth_file' lines: awk '!/^#/{print $1, $2}' associations.txt > rgb.txt; "
                 "awk '!/^#/{print $3, $4}' associations.txt > depth.txt)"
+            )
+        images = find_image_folders(folder)
+        if images is not None and images.rgb_names:
+            scale = " --depth-scale 1000" if images.open3d_intrinsic is not None else ""
+            raise SequenceFormatError(
+                f"{folder}: has {images.rgb_names[0].split('/')[0]}/ and depth/ images but no rgb.txt or depth.txt; "
+                f"write them with 'tambridge index {folder} --rate HZ{scale}' (HZ: your camera's frames per second"
+                + (", 1000: depth units per metre" if scale else "") + ")"
             )
         raise SequenceFormatError(
             f"{folder}: not a sequence folder (no rgb.txt or depth.txt); "
