@@ -168,7 +168,8 @@ def reconstruct(
             snapshot = functools.partial(run_checkpoint, config=config, fingerprint=fingerprint, frontend=frontend,
                                          mapping=mapping, run_log=run_log, counters=counters)
             checkpoints = KeyframeCheckpoints(checkpoint_file, config.checkpoint.every_keyframes, snapshot,
-                                              counters.keyframes, config.checkpoint.min_interval_s)
+                                              counters.keyframes, config.checkpoint.min_interval_s,
+                                              config.checkpoint.max_time_share)
         with contextlib.ExitStack() as viewing:
             live_view = RerunViewer(viewer, sequence.camera) if viewer else None
             if live_view is not None:

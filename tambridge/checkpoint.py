@@ -31,7 +31,7 @@ import numpy as np
 from tambridge.errors import CheckpointError
 from tambridge.files import atomic_path
 from tambridge.io.tum import RgbdSequence
-from tambridge.settings import NON_NEGATIVE, setting
+from tambridge.settings import FRACTION, NON_NEGATIVE, setting
 from tambridge.state import StateCodec, StateTypes, decode_state, dotted_items, encode_state
 
 logger = logging.getLogger("tambridge.checkpoint")
@@ -62,6 +62,11 @@ class CheckpointConfig:
     every_keyframes: int = setting(10, "write a checkpoint for --resume every n keyframes (0: never)", NON_NEGATIVE)
     # Keeps the cost of checkpoints a small share of the run where keyframes come fast.
     min_interval_s: float = setting(20.0, "seconds of wall time at least between two checkpoints", NON_NEGATIVE)
+    # The state, and so a checkpoint's time, grows with the session: at fixed intervals their total would grow with
+    # its square.
+    max_time_share: float = setting(0.02, "after a checkpoint that took t seconds, the next waits at least "
+                                          "t / max_time_share seconds (checkpoints take at most this share of the run)",
+                                    FRACTION)
 
 
 @dataclasses.dataclass
@@ -358,16 +363,20 @@ class KeyframeCheckpoints:
     """
 
     def __init__(self, path: Path, every_keyframes: int, snapshot: Callable[[int], Checkpoint],
-                 keyframes_so_far: int = 0, min_interval_s: float = 0.0) -> None:
+                 keyframes_so_far: int = 0, min_interval_s: float = 0.0, max_time_share: float = 1.0,
+                 clock: Callable[[], float] = time.perf_counter) -> None:
         if every_keyframes < 0:
             raise CheckpointError(f"checkpoint.every_keyframes={every_keyframes}: expected 0 (off) or a positive count")
         self.path = Path(path)
         self.every_keyframes = every_keyframes
         self.min_interval_s = min_interval_s
+        self.max_time_share = max_time_share
         self.snapshot = snapshot
         self.keyframes = keyframes_so_far
+        self.clock = clock
         self._keyframes_at_last = keyframes_so_far
-        self._time_of_last = time.perf_counter()
+        self._time_of_last = clock()
+        self._interval_s = min_interval_s
         self._next_frame_written: int | None = None
 
     def after_keyframe(self, next_frame: int) -> None:
@@ -375,16 +384,19 @@ class KeyframeCheckpoints:
         self.keyframes += 1
         if not self.every_keyframes or self.keyframes - self._keyframes_at_last < self.every_keyframes:
             return
-        if time.perf_counter() - self._time_of_last >= self.min_interval_s:
+        if self.clock() - self._time_of_last >= self._interval_s:
             self.write(next_frame)
 
     def write(self, next_frame: int) -> None:
-        """Write a checkpoint now (frames ``[0, next_frame)`` tracked and mapped)."""
+        """Write a checkpoint now (frames ``[0, next_frame)`` tracked and mapped); the next waits at least
+        ``min_interval_s``, and at least this one's seconds over ``max_time_share``."""
+        started = self.clock()
         size = save_checkpoint(self.path, self.snapshot(next_frame))
-        self._keyframes_at_last, self._time_of_last = self.keyframes, time.perf_counter()
+        self._keyframes_at_last, self._time_of_last = self.keyframes, self.clock()
+        self._interval_s = max(self.min_interval_s, (self._time_of_last - started) / self.max_time_share)
         self._next_frame_written = next_frame
-        logger.info("checkpoint at frame %d (%d keyframes): %s, %.1f MB", next_frame, self.keyframes, self.path,
-                    size / 1e6)
+        logger.info("checkpoint at frame %d (%d keyframes): %s, %.1f MB in %.2f s; the next in %.0f s at the earliest",
+                    next_frame, self.keyframes, self.path, size / 1e6, self._time_of_last - started, self._interval_s)
 
     def write_unless_written(self, next_frame: int) -> None:
         """:meth:`write`, unless this object's last checkpoint is already at ``next_frame`` (the same state)."""

@@ -25,11 +25,13 @@ from click.testing import CliRunner
 from cli import main
 from pipelines.reconstruct import reconstruct
 from tambridge.bridge.view_selection import Selection
+import tambridge.checkpoint as checkpoint_module
 from tambridge.checkpoint import (
     CHECKPOINT_VERSION,
     START_OVER,
     Checkpoint,
     CheckpointError,
+    KeyframeCheckpoints,
     check_resumable,
     checkpoint_path,
     load_checkpoint,
@@ -409,3 +411,25 @@ def test_orb_frontend_with_mapping_thread_checkpoints_between_frames(synthetic_s
     errors = evaluate_trajectory(result.trajectory, sequence.ground_truth)
     # As an uninterrupted run of these frames with the mapping thread (whose timing varies the result a little).
     assert errors.ate_rmse_m < 0.015
+
+
+def test_checkpoints_wait_long_enough_to_take_at_most_their_share_of_the_run(monkeypatch, tmp_path):
+    """A long session's state, and so its checkpoint's time, grows: the next checkpoint waits at least the last one's
+    seconds over the share, and never less than min_interval_s."""
+    now = [0.0]
+    write_seconds = iter([1.0, 3.0, 0.1, 0.1])
+
+    def save(path, checkpoint):
+        now[0] += next(write_seconds)
+        return 1000
+
+    monkeypatch.setattr(checkpoint_module, "save_checkpoint", save)
+    times_s = (19.0, 20.0, 40.0, 41.0, 103.9, 104.0, 124.0, 124.2)
+    written = []
+    checkpoints = KeyframeCheckpoints(tmp_path / "checkpoint", 1, lambda next_frame: written.append(times_s[next_frame]),
+                                      min_interval_s=20.0, max_time_share=0.05, clock=lambda: now[0])
+    for frame, time_s in enumerate(times_s):
+        now[0] = time_s
+        checkpoints.after_keyframe(frame)
+    # 20 s after the start; then 20 s after a 1 s write (1 / 0.05); 60 s after a 3 s write; 20 s after a quick one.
+    assert written == [20.0, 41.0, 104.0, 124.2]
