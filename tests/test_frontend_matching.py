@@ -60,11 +60,13 @@ def test_distinctive_descriptor_is_the_medoid():
     np.testing.assert_array_equal(chosen[2:], centres[2:])
 
 
-def test_distinctive_indices_match_reference_on_random_groups():
+@pytest.mark.parametrize("largest, flipped", [(12, 0.2), (250, 0.02)])
+def test_distinctive_indices_match_reference_on_random_groups(largest, flipped):
+    """Small groups, and the hundreds of observations a point gathers in a long session, nearly alike (many ties)."""
     rng = np.random.default_rng(4)
-    sizes = rng.integers(1, 12, 40)
+    sizes = rng.integers(1, largest, 40)
     group_start = np.concatenate([[0], np.cumsum(sizes)])
-    descriptors = flip_bits(rng, np.repeat(random_descriptors(rng, 40), sizes, axis=0), 0.2)
+    descriptors = flip_bits(rng, np.repeat(random_descriptors(rng, 40), sizes, axis=0), flipped)
     np.testing.assert_array_equal(distinctive_indices(descriptors, group_start),
                                   distinctive_indices_reference(descriptors, group_start))
 
