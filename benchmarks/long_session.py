@@ -6,12 +6,12 @@
 The sequence of N laps is built in ``--work`` (outside the repository): ``<sequence>_laps<N>/`` keeps the source's
 folder name in front, so a ``freiburg1`` sequence keeps TUM's fr1 camera, rolling shutter included. Every lap plays
 the recording FORWARD again (reversed time would be another camera: the tracker models the Kinect's rolling
-shutter, which reads rows in time order). Lap k (from 0) is the source with every timestamp shifted by k x
-(duration + one frame interval), the duration being the span of rgb.txt's and depth.txt's stamps together
-(fr1/xyz: 26.594 s) and the frame interval the median of rgb.txt's (0.032 s): lap k+1's first frame follows lap k's
-last one as the recording's next frame would. Images are absolute symlinks named by their new stamps (lap 0 by its
-own); groundtruth.txt and accelerometer.txt are re-stamped alike, each lap keeping only the samples within half a
-frame interval of its frames (their recordings start seconds before the camera's), so that laps never overlap in
+shutter, which reads rows in time order). Lap k (from 0) is the source with every timestamp shifted by k x (duration
++ one frame interval), the duration being the span of rgb.txt's and depth.txt's stamps together (fr1/xyz: 26.594 s)
+and the frame interval the median of rgb.txt's (0.032 s): lap k+1's first frame follows lap k's last one after the
+recording's depth stamps have ended and one frame interval more (54 ms on fr1/xyz). Images are absolute symlinks
+named by their new stamps (lap 0 by its own); groundtruth.txt and accelerometer.txt are re-stamped alike, each lap
+keeping only the samples within half a frame interval of its frames (their recordings start seconds before the camera's), so that laps never overlap in
 time; a camera file (camera.yaml, camera.yml, camera.txt) is copied. The joins are real revisits, but not small
 ones: at fr1/xyz's last frame the camera is 21.5 cm and 11.5 degrees (motion capture) from where it was at the
 first, a jump between two frames 54 ms apart (4 m/s, which no motion model predicts): each join asks the tracker to

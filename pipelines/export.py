@@ -199,6 +199,11 @@ def write_colmap(folder: Path, record: RunRecord, frame_indices: list[int], came
         pixels_px = pixels_in_images(pixels_px, record.sequence, mode)
         inside = camera.in_image(pixels_px)
         images.append(ModelImage(name, world_from_camera, rows[inside], pixels_px[inside]))
+    pointless = [image.name for image in images if len(image.point_rows) == 0]
+    if points.tracked and pointless:
+        # gsplat's depth loss, for one, stops at an image that sees no point.
+        logger.warning("%d exported images see no map point (no depth measures one where it projects), e.g. %s",
+                       len(pointless), pointless[0])
     model = build_model(camera, images, points.world_m, points.colours)
     write_model(model, folder / "sparse" / "0", text)
     return int(model.compute_num_observations())

@@ -357,7 +357,8 @@ def check_resumable(path: Path, checkpoint: Checkpoint, config: dict, sequence: 
 
 class KeyframeCheckpoints:
     """Writes a checkpoint after a keyframe once ``every_keyframes`` keyframes (never when it is 0) and
-    ``min_interval_s`` seconds of wall time have passed since the last checkpoint (or the start).
+    ``min_interval_s`` seconds of wall time have passed since the last checkpoint (or the start), and at least the
+    last checkpoint's seconds (snapshot and write) over ``max_time_share``.
 
     ``snapshot(next_frame)`` builds the :class:`Checkpoint` when one is due.
     """

@@ -350,7 +350,8 @@ def test_undistort_keeps_a_straight_edge_straight_as_opencv_does(distorted_run_d
 
 
 @pytest.mark.parametrize("cx, cy, region", [(79.5, 59.5, (0, 120, 0, 160)), (82.3, 71.8, (4, 117, 9, 151)),
-                                             (20.0, 100.6, (3, 120, 0, 160)), (148.3, 59.5, (0, 120, 0, 151))])
+                                             (20.0, 100.6, (3, 120, 0, 160)), (148.3, 59.5, (0, 120, 0, 151)),
+                                             (100.5, 59.5, (0, 120, 0, 160))])
 def test_undistorted_window_is_the_longest_span_centred_on_the_principal_point(cx, cy, region):
     sequence = SimpleNamespace(valid_region=region, camera=Camera(160, 120, 100.0, 100.0, cx, cy), folder=Path("seq"))
     top, bottom, left, right = undistorted_window(sequence)
@@ -365,7 +366,7 @@ def test_a_principal_point_outside_the_pixels_with_data_is_refused_for_undistort
     sequence = SimpleNamespace(valid_region=(0, 120, 10, 160), camera=Camera(160, 120, 100.0, 100.0, 5.0, 59.5),
                                folder=Path("seq"))
     with pytest.raises(ExportError, match=r"^seq: the principal point \(5\.0, 59\.5\) lies outside the pixels the frames "
-                                          r"have data for \(rows 0-120, columns 10-160\); export with --images copy$"):
+                                          r"have data for \(rows 0-120, columns 10-160\); check cx and cy in the camera file$"):
         undistorted_window(sequence)
 
 

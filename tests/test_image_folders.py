@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from cli import main
 from tambridge.errors import CameraConfigError, SequenceFormatError
-from tambridge.io.image_folders import camera_values_from_open3d, write_tum_index
+from tambridge.io.image_folders import camera_values_from_open3d, find_image_folders, write_tum_index
 from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
 from tambridge.io.tum import open_sequence
 
@@ -95,6 +95,7 @@ def test_camera_values_are_read_from_open3d_column_by_column(tmp_path):
 @pytest.mark.parametrize("change, arguments, message", [
     ("none", ["--rate", "30"], r"camera_intrinsic\.json: holds no depth scale; pass --depth-scale \(depth units per metre"),
     ("none", ["--rate", "0", "--depth-scale", "1000"], r"--rate 0\.0: the camera's frames per second must be above 0"),
+    ("none", ["--rate", "30", "--depth-scale", "-1000"], r"camera_intrinsic\.json: .*depth_scale"),
     ("no_intrinsic", ["--rate", "30", "--depth-scale", "1000"], r"--depth-scale goes into a camera\.yaml made from Open3D's"),
     ("rgb_txt", ["--rate", "30", "--depth-scale", "1000"], r"rgb\.txt: already there; remove it to write it again"),
     ("renamed", ["--rate", "30", "--depth-scale", "1000"], r"no colour image has a depth image of the same name in depth/"),
@@ -119,3 +120,36 @@ def test_bad_folders_are_refused_in_one_line_writing_nothing(tum_sequence, tmp_p
     if change == "rgb_txt":
         assert (folder / "rgb.txt").read_text() == "# the user's own\n"
     assert not (folder / "camera.yaml").exists()
+
+
+def test_a_folder_whose_images_do_not_pair_is_told_so(tum_sequence, tmp_path):
+    folder = tmp_path / "recording"
+    _open3d_layout(tum_sequence, folder)
+    for path in (folder / "depth").iterdir():
+        path.rename(path.with_name(f"depth_{path.name}"))
+    with pytest.raises(SequenceFormatError, match=r"has color/ and depth/ folders but no rgb\.txt or depth\.txt, and no "
+                                                  r"colour image has a depth image of the same name to pair with"):
+        open_sequence(folder)
+
+
+def test_the_folders_own_camera_yaml_is_kept_beside_open3ds_intrinsics(tum_sequence, tmp_path):
+    folder = tmp_path / "recording"
+    source = _open3d_layout(tum_sequence, folder)
+    own = (tum_sequence / "camera.yaml").read_text()
+    (folder / "camera.yaml").write_text(own)
+    with pytest.raises(SequenceFormatError, match=rf"write them with 'tambridge index {folder} --rate HZ' \(HZ: your "
+                                                  r"camera's frames per second\)$"):
+        open_sequence(folder)
+    images = write_tum_index(folder, 30.0)
+    assert images.open3d_intrinsic is not None and (folder / "camera.yaml").read_text() == own
+    assert open_sequence(folder).camera == source.camera
+
+
+def test_names_with_the_same_number_keep_one_order(tmp_path):
+    """``10.png`` and ``010.png`` hold the same number: the name decides, whatever the set's order."""
+    (tmp_path / "color").mkdir()
+    (tmp_path / "depth").mkdir()
+    for name in ("9.png", "010.png", "10.png"):
+        (tmp_path / "color" / name).write_bytes(b"")
+        (tmp_path / "depth" / name).write_bytes(b"")
+    assert find_image_folders(tmp_path).rgb_names == ["color/9.png", "color/010.png", "color/10.png"]

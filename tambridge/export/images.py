@@ -44,8 +44,8 @@ def undistorted_window(sequence: RgbdSequence) -> tuple[int, int, int, int]:
     columns = _centred_span(camera.cx, left, right)
     if rows is None or columns is None:
         raise ExportError(f"{sequence.folder}: the principal point ({camera.cx:.1f}, {camera.cy:.1f}) lies outside the "
-                          f"pixels the frames have data for (rows {top}-{bottom}, columns {left}-{right}); export with "
-                          "--images copy")
+                          f"pixels the frames have data for (rows {top}-{bottom}, columns {left}-{right}); check cx and cy in the "
+                          "camera file")
     return rows[0], rows[1], columns[0], columns[1]
 
 
@@ -53,9 +53,11 @@ def _centred_span(centre_px: float, start: int, stop: int) -> tuple[int, int] | 
     """The longest ``[first, last)`` inside ``[start, stop)`` whose middle, ``(first + last - 1) / 2``, is within half a
     pixel of ``centre_px``; None when none is."""
     for length in range(stop - start, 0, -1):
-        first = int(np.floor(centre_px - (length - 1) / 2 + 0.5))
-        if start <= first and first + length <= stop:
-            return first, first + length
+        nearest = int(np.floor(centre_px - (length - 1) / 2 + 0.5))
+        # A centre on a half pixel is as near to the span one lower.
+        for first in (nearest, nearest - 1):
+            if start <= first and first + length <= stop and abs(first + (length - 1) / 2 - centre_px) <= 0.5:
+                return first, first + length
     return None
 
 

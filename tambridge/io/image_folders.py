@@ -13,6 +13,7 @@ from pathlib import Path
 
 import yaml
 
+from tambridge.camera import sensor_from_mapping
 from tambridge.errors import CameraConfigError, SequenceFormatError
 from tambridge.files import atomic_write_text
 
@@ -26,20 +27,23 @@ OPEN3D_INTRINSIC_FILES = ("camera_intrinsic.json", "intrinsic.json")
 
 @dataclasses.dataclass
 class ImageFolders:
-    """A folder's colour and depth images, paired by file name without its suffix (``rgb_names`` (N,) and
-    ``depth_names`` (N,), paths relative to the folder, in frame order), the colour images without a depth image
-    of their name (``rgb_only``, TUM lists them in rgb.txt alone), and Open3D's intrinsics file if there is one."""
+    """A folder's colour image folder (``colour_folder``, its name) and its colour and depth images, paired by file
+    name without its suffix (``rgb_names`` (N,) and ``depth_names`` (N,), paths relative to the folder, in frame
+    order), the colour images without a depth image of their name (``rgb_only``, TUM lists them in rgb.txt alone),
+    and Open3D's intrinsics file if there is one."""
 
     folder: Path
+    colour_folder: str
     rgb_names: list[str]
     depth_names: list[str]
     rgb_only: list[str]
     open3d_intrinsic: Path | None
 
 
-def _frame_order(name: str) -> list:
-    """Sort key of an image name: its digits as numbers (``frame10`` after ``frame9``), the rest as text."""
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+def _frame_order(name: str) -> tuple:
+    """Sort key of an image name: its digits as numbers (``frame10`` after ``frame9``), the rest as text; the name
+    itself breaks ties (``010`` and ``10``)."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)], name
 
 
 def _images(folder: Path) -> dict[str, str]:
@@ -57,7 +61,7 @@ def find_image_folders(folder: Path) -> ImageFolders | None:
     paired = sorted(set(colour_images) & set(depth_images), key=_frame_order)
     unpaired = sorted(set(colour_images) - set(depth_images), key=_frame_order)
     intrinsic = next((folder / name for name in OPEN3D_INTRINSIC_FILES if (folder / name).is_file()), None)
-    return ImageFolders(folder, [f"{colour.name}/{colour_images[stem]}" for stem in paired],
+    return ImageFolders(folder, colour.name, [f"{colour.name}/{colour_images[stem]}" for stem in paired],
                         [f"{DEPTH_FOLDER}/{depth_images[stem]}" for stem in paired],
                         [f"{colour.name}/{colour_images[stem]}" for stem in unpaired], intrinsic)
 
@@ -93,27 +97,30 @@ def write_tum_index(folder: Path, rate_hz: float, depth_scale: float | None = No
     if not rate_hz > 0:
         raise SequenceFormatError(f"--rate {rate_hz}: the camera's frames per second must be above 0")
     targets = ["rgb.txt", "depth.txt"]
-    if images.open3d_intrinsic is not None:
+    # A camera.yaml of the user's own is kept: Open3D's intrinsics are read only where there is none.
+    from_open3d = images.open3d_intrinsic is not None and not (folder / "camera.yaml").exists()
+    if from_open3d:
         if depth_scale is None:
             raise CameraConfigError(f"{images.open3d_intrinsic}: holds no depth scale; pass --depth-scale (depth units "
                                     "per metre: 1000 for millimetres, Open3D's and RealSense's default)")
         camera_values = camera_values_from_open3d(images.open3d_intrinsic, depth_scale)
+        sensor_from_mapping(camera_values, images.open3d_intrinsic)  # its values checked as a camera file's
         targets.append("camera.yaml")
     elif depth_scale is not None:
         raise CameraConfigError(f"{folder}: --depth-scale goes into a camera.yaml made from Open3D's "
-                                f"{' or '.join(OPEN3D_INTRINSIC_FILES)}, which this folder lacks; write camera.yaml "
-                                "yourself (width, height, fx, fy, cx, cy, depth_scale)")
+                                f"{' or '.join(OPEN3D_INTRINSIC_FILES)}, which this folder lacks or has beside its own "
+                                "camera.yaml; give depth_scale in camera.yaml")
     existing = [name for name in targets if (folder / name).exists()]
     if existing:
         raise SequenceFormatError(f"{folder / existing[0]}: already there; remove it to write it again")
     frames = sorted([(name, True) for name in images.rgb_names] + [(name, False) for name in images.rgb_only],
                     key=lambda item: _frame_order(Path(item[0]).stem))
     stamps = {name: index / rate_hz for index, (name, _) in enumerate(frames)}
-    header = f"# written by 'tambridge index' from {folder.name}: frame i at i / {rate_hz:g} s\n# timestamp filename\n"
+    header = f"# written by 'tambridge index' from {folder.resolve().name}: frame i at i / {rate_hz:g} s\n# timestamp filename\n"
     atomic_write_text(folder / "rgb.txt", header + "".join(f"{stamps[name]:.6f} {name}\n" for name, _ in frames))
     atomic_write_text(folder / "depth.txt", header + "".join(
         f"{stamps[rgb]:.6f} {depth}\n" for rgb, depth in zip(images.rgb_names, images.depth_names)))
-    if images.open3d_intrinsic is not None:
+    if from_open3d:
         atomic_write_text(folder / "camera.yaml", f"# from {images.open3d_intrinsic.name} by 'tambridge index'\n"
                           + yaml.safe_dump(camera_values, sort_keys=False))
     return images

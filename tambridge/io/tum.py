@@ -405,10 +405,16 @@ def check_sequence_folder(folder: Path) -> None:
                 "awk '!/^#/{print $3, $4}' associations.txt > depth.txt)"
             )
         images = find_image_folders(folder)
-        if images is not None and images.rgb_names:
-            scale = " --depth-scale 1000" if images.open3d_intrinsic is not None else ""
+        if images is not None and not images.rgb_names:
             raise SequenceFormatError(
-                f"{folder}: has {images.rgb_names[0].split('/')[0]}/ and depth/ images but no rgb.txt or depth.txt; "
+                f"{folder}: has {images.colour_folder}/ and depth/ folders "
+                "but no rgb.txt or depth.txt, and no colour image has a depth image of the same name to pair with "
+                "(for example color/000000.jpg and depth/000000.png); rename them, then run 'tambridge index'"
+            )
+        if images is not None:
+            scale = " --depth-scale 1000" if images.open3d_intrinsic is not None and not (folder / "camera.yaml").exists() else ""
+            raise SequenceFormatError(
+                f"{folder}: has {images.colour_folder}/ and depth/ images but no rgb.txt or depth.txt; "
                 f"write them with 'tambridge index {folder} --rate HZ{scale}' (HZ: your camera's frames per second"
                 + (", 1000: depth units per metre" if scale else "") + ")"
             )
