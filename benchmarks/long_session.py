@@ -12,8 +12,8 @@ and the frame interval the median of rgb.txt's (0.032 s): lap k+1's first frame 
 recording's depth stamps have ended and one frame interval more (54 ms on fr1/xyz). Images are absolute symlinks
 named by their new stamps (lap 0 by its own); groundtruth.txt and accelerometer.txt are re-stamped alike, each lap
 keeping only the samples within half a frame interval of its frames (their recordings start seconds before the
-camera's), so that laps never overlap in time; a camera file (camera.yaml, camera.yml, camera.txt) is copied. The joins are real revisits, but not small
-ones: at fr1/xyz's last frame the camera is 21.5 cm and 11.5 degrees (motion capture) from where it was at the
+camera's), so that laps never overlap in time; a camera file (camera.yaml, camera.yml, camera.txt) is copied.
+The joins are real revisits, but not small ones: at fr1/xyz's last frame the camera is 21.5 cm and 11.5 degrees (motion capture) from where it was at the
 first, a jump between two frames 54 ms apart (4 m/s, which no motion model predicts): each join asks the tracker to
 relocalise against the earlier laps' keyframes (on 2026-12-07 it did so at the join's first frame, and no loop
 closed: tracking went on in the first lap's map, whose keyframes are covisible with the new ones).
