@@ -100,6 +100,7 @@ def test_camera_values_are_read_from_open3d_column_by_column(tmp_path):
     ("rgb_txt", ["--rate", "30", "--depth-scale", "1000"], r"rgb\.txt: already there; remove it to write it again"),
     ("renamed", ["--rate", "30", "--depth-scale", "1000"], r"no colour image has a depth image of the same name in depth/"),
     ("no_depth", ["--rate", "30"], r"no colour image folder \(rgb, color, colour, image\) beside a depth/ folder"),
+    ("a_file", ["--rate", "30"], r"color: not a folder; pass the folder that holds the color/ and depth/ folders"),
 ])
 def test_bad_folders_are_refused_in_one_line_writing_nothing(tum_sequence, tmp_path, change, arguments, message):
     folder = tmp_path / "recording"
@@ -111,8 +112,13 @@ def test_bad_folders_are_refused_in_one_line_writing_nothing(tum_sequence, tmp_p
             path.rename(path.with_name(f"d{path.name}"))
     elif change == "no_depth":
         shutil.rmtree(folder / "depth")
+    target = folder
+    if change == "a_file":  # the colour folder given, and a file at that
+        target = folder / "color"
+        shutil.rmtree(target)
+        target.write_text("not images\n")
     before = sorted(path.name for path in folder.iterdir())
-    result = CliRunner().invoke(main, ["index", str(folder), *arguments])
+    result = CliRunner().invoke(main, ["index", str(target), *arguments])
     assert result.exit_code == 2, result.output
     lines = result.output.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and re.search(message, lines[0]), lines

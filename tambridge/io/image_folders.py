@@ -87,6 +87,8 @@ def write_tum_index(folder: Path, rate_hz: float, depth_scale: float | None = No
     folder has Open3D's intrinsics, camera.yaml with ``depth_scale``; everything is checked before anything is
     written, and files already there are never replaced."""
     folder = Path(folder)
+    if not folder.is_dir():
+        raise SequenceFormatError(f"{folder}: not a folder; pass the folder that holds the color/ and depth/ folders")
     images = find_image_folders(folder)
     if images is None:
         raise SequenceFormatError(f"{folder}: no colour image folder ({', '.join(COLOUR_FOLDERS)}) beside a "
