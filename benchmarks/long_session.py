@@ -56,6 +56,7 @@ from tambridge.errors import TambridgeError  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_write_text, check_new_or_empty_folder  # noqa: E402
+from tambridge.geometry import inverse, rotation_angle_deg  # noqa: E402
 from tambridge.io.tum import associate, read_file_list  # noqa: E402
 from tambridge.trajectory import read_tum_trajectory  # noqa: E402
 
@@ -156,9 +157,7 @@ def join_jump(source: Path) -> tuple[float, float]:
     colour = read_file_list(source / "rgb.txt")
     ends = read_tum_trajectory(source / "groundtruth.txt").nearest(np.array([colour[0][0], colour[-1][0]]))
     first, last = ends.world_from_camera
-    rotation = first[:3, :3].T @ last[:3, :3]
-    angle = np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0)))
-    return float(np.linalg.norm(last[:3, 3] - first[:3, 3])), float(angle)
+    return float(np.linalg.norm(last[:3, 3] - first[:3, 3])), rotation_angle_deg(inverse(first) @ last)
 
 
 class _SamplesWithFrames(list):
