@@ -388,7 +388,7 @@ def index(folder, rate, depth_scale) -> None:
     from tambridge.io.image_folders import write_tum_index
 
     images = write_tum_index(folder, rate, depth_scale)
-    camera = f", camera.yaml from {images.open3d_intrinsic.name}" if images.open3d_intrinsic is not None else ""
+    camera = f", camera.yaml from {images.open3d_intrinsic.name}" if images.camera_from_open3d else ""
     unpaired = f" ({len(images.rgb_only)} colour images without depth listed in rgb.txt only)" if images.rgb_only else ""
     click.echo(f"wrote rgb.txt and depth.txt of {len(images.rgb_names)} frames{unpaired}{camera} to {folder}")
 

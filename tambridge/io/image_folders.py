@@ -30,7 +30,8 @@ class ImageFolders:
     """A folder's colour image folder (``colour_folder``, its name) and its colour and depth images, paired by file
     name without its suffix (``rgb_names`` (N,) and ``depth_names`` (N,), paths relative to the folder, in frame
     order), the colour images without a depth image of their name (``rgb_only``, TUM lists them in rgb.txt alone),
-    and Open3D's intrinsics file if there is one."""
+    Open3D's intrinsics file if there is one, and whether camera.yaml is to be made from it (``camera_from_open3d``:
+    there is one and the folder has no camera.yaml of its own, which is kept)."""
 
     folder: Path
     colour_folder: str
@@ -38,6 +39,7 @@ class ImageFolders:
     depth_names: list[str]
     rgb_only: list[str]
     open3d_intrinsic: Path | None
+    camera_from_open3d: bool
 
 
 def _frame_order(name: str) -> tuple:
@@ -61,9 +63,10 @@ def find_image_folders(folder: Path) -> ImageFolders | None:
     paired = sorted(set(colour_images) & set(depth_images), key=_frame_order)
     unpaired = sorted(set(colour_images) - set(depth_images), key=_frame_order)
     intrinsic = next((folder / name for name in OPEN3D_INTRINSIC_FILES if (folder / name).is_file()), None)
+    camera_from_open3d = intrinsic is not None and not (folder / "camera.yaml").exists()
     return ImageFolders(folder, colour.name, [f"{colour.name}/{colour_images[stem]}" for stem in paired],
                         [f"{DEPTH_FOLDER}/{depth_images[stem]}" for stem in paired],
-                        [f"{colour.name}/{colour_images[stem]}" for stem in unpaired], intrinsic)
+                        [f"{colour.name}/{colour_images[stem]}" for stem in unpaired], intrinsic, camera_from_open3d)
 
 
 def camera_values_from_open3d(path: Path, depth_scale: float) -> dict:
@@ -99,9 +102,7 @@ def write_tum_index(folder: Path, rate_hz: float, depth_scale: float | None = No
     if not rate_hz > 0:
         raise SequenceFormatError(f"--rate {rate_hz}: the camera's frames per second must be above 0")
     targets = ["rgb.txt", "depth.txt"]
-    # A camera.yaml of the user's own is kept: Open3D's intrinsics are read only where there is none.
-    from_open3d = images.open3d_intrinsic is not None and not (folder / "camera.yaml").exists()
-    if from_open3d:
+    if images.camera_from_open3d:
         if depth_scale is None:
             raise CameraConfigError(f"{images.open3d_intrinsic}: holds no depth scale; pass --depth-scale (depth units "
                                     "per metre: 1000 for millimetres, Open3D's and RealSense's default)")
@@ -122,7 +123,7 @@ def write_tum_index(folder: Path, rate_hz: float, depth_scale: float | None = No
     atomic_write_text(folder / "rgb.txt", header + "".join(f"{stamps[name]:.6f} {name}\n" for name, _ in frames))
     atomic_write_text(folder / "depth.txt", header + "".join(
         f"{stamps[rgb]:.6f} {depth}\n" for rgb, depth in zip(images.rgb_names, images.depth_names)))
-    if from_open3d:
+    if images.camera_from_open3d:
         atomic_write_text(folder / "camera.yaml", f"# from {images.open3d_intrinsic.name} by 'tambridge index'\n"
                           + yaml.safe_dump(camera_values, sort_keys=False))
     return images

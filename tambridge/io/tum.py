@@ -412,7 +412,7 @@ def check_sequence_folder(folder: Path) -> None:
                 "(for example color/000000.jpg and depth/000000.png); rename them, then run 'tambridge index'"
             )
         if images is not None:
-            scale = " --depth-scale 1000" if images.open3d_intrinsic is not None and not (folder / "camera.yaml").exists() else ""
+            scale = " --depth-scale 1000" if images.camera_from_open3d else ""
             raise SequenceFormatError(
                 f"{folder}: has {images.colour_folder}/ and depth/ images but no rgb.txt or depth.txt; "
                 f"write them with 'tambridge index {folder} --rate HZ{scale}' (HZ: your camera's frames per second"
