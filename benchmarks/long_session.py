@@ -295,20 +295,26 @@ def _number(value, digits: int = 1) -> str:
     return "-" if value is None else f"{value:.{digits}f}"
 
 
+def _settings(row: dict) -> str:
+    return row["options"].replace("--set ", "") or "default"
+
+
 def format_tables(rows: list[dict]) -> str:
-    """Markdown: one row per run (frames, time, map, loops, errors, memory), then ms/frame per stage against laps."""
+    """Markdown: one row per run (frames, time, map, loops, errors, memory), then ms/frame per stage against laps,
+    one table per settings."""
     done = [row for row in rows if row["exit_status"] == 0 and "frames" in row]
-    lines = ["| laps | frames | wall s (CPU s) | frames/s | online s per lap | keyframes (per lap) | Gaussians | "
+    lines = ["| settings | laps | frames | wall s (CPU s) | frames/s | online s per lap | keyframes (per lap) | Gaussians | "
              "loops closed | lost | ATE cm | ATE cm per lap | PSNR dB novel / exported | peak MB (tracking) |",
-             "|---|" + "---|" * 12]
+             "|---|" + "---|" * 13]
     for row in rows:
         if row not in done:
-            lines.append(f"| {row['laps']} | failed (exit {row['exit_status']}) | {row['wall_seconds']:.0f} |"
-                         + " |" * 10)
+            lines.append(f"| {_settings(row)} | {row['laps']} | failed (exit {row['exit_status']}) | "
+                         f"{row['wall_seconds']:.0f} |" + " |" * 10)
             continue
         per_lap = row.get("per_lap", {}).get("laps", [])
         lines.append(
-            f"| {row['laps']} | {row['frames']} | {row['wall_seconds']:.0f} ({_number(row.get('cpu_seconds'), 0)}) | "
+            f"| {_settings(row)} | {row['laps']} | {row['frames']} | {row['wall_seconds']:.0f} "
+            f"({_number(row.get('cpu_seconds'), 0)}) | "
             f"{row['fps_end_to_end']:.2f} | {' / '.join(f'{s:.0f}' for s in row['online_seconds_per_lap']) or '-'} | "
             f"{row['keyframes']} ({' / '.join(str(lap['keyframes']) for lap in per_lap) or '-'}) | "
             f"{row['gaussians'] or '-'} | {row['loops_closed']} | {row['frames_lost']} | "
@@ -316,17 +322,17 @@ def format_tables(rows: list[dict]) -> str:
             f"{' / '.join(_number(lap['ate_rmse_cm'], 2) for lap in per_lap) or '-'} | "
             f"{_number(row['psnr_novel_db'], 2)} / {_number(row['psnr_exported_db'], 2)} | "
             f"{row['peak_memory_mb']:.0f} ({row['peak_memory_mb_tracking']:.0f}) |")
-    if not done:
-        return "\n".join(lines)
-    for title, key in (("stage", "ms_per_frame_per_stage"), ("frontend stage", "frontend_ms_per_frame_per_stage")):
-        stages = list(dict.fromkeys(stage for row in done for stage in row[key]))
-        header = " | ".join(f"{row['laps']} lap{'s' if row['laps'] > 1 else ''} ({row['frames']} fr)" for row in done)
-        lines += ["", f"| {title}, ms/frame | {header} | last / first |", "|---|" + "---|" * (len(done) + 1)]
-        for stage in stages:
-            values = [row[key].get(stage) for row in done]
-            ratio = (values[-1] / values[0]) if values[0] and values[-1] is not None and len(done) > 1 else None
-            lines.append(f"| {stage} | {' | '.join(_number(value) for value in values)} | "
-                         f"{'-' if ratio is None else f'{ratio:.2f}x'} |")
+    for settings in dict.fromkeys(_settings(row) for row in done):
+        group = [row for row in done if _settings(row) == settings]
+        for title, key in (("stage", "ms_per_frame_per_stage"), ("frontend stage", "frontend_ms_per_frame_per_stage")):
+            stages = list(dict.fromkeys(stage for row in group for stage in row[key]))
+            header = " | ".join(f"{row['laps']} lap{'s' if row['laps'] > 1 else ''} ({row['frames']} fr)" for row in group)
+            lines += ["", f"| {title}, ms/frame ({settings}) | {header} | last / first |", "|---|" + "---|" * (len(group) + 1)]
+            for stage in stages:
+                values = [row[key].get(stage) for row in group]
+                ratio = (values[-1] / values[0]) if values[0] and values[-1] is not None and len(group) > 1 else None
+                lines.append(f"| {stage} | {' | '.join(_number(value) for value in values)} | "
+                             f"{'-' if ratio is None else f'{ratio:.2f}x'} |")
     return "\n".join(lines)
 
 

@@ -95,9 +95,16 @@ def inverse(transform: np.ndarray) -> np.ndarray:
     return out
 
 
+def rotation_angles_deg(transforms: np.ndarray) -> np.ndarray:
+    """Angles (...,) in degrees of the rotations of 4x4 transforms (..., 4, 4) or 3x3 rotations (..., 3, 3), from
+    their traces."""
+    traces = np.trace(transforms[..., :3, :3], axis1=-2, axis2=-1)
+    return np.degrees(np.arccos(np.clip((traces - 1.0) / 2.0, -1.0, 1.0)))
+
+
 def rotation_angle_deg(transform: np.ndarray) -> float:
-    """Angle (degrees) of the rotation of a 4x4 transform (or a 3x3 rotation), from its trace."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(transform[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+    """Angle (degrees) of the rotation of a 4x4 transform (or a 3x3 rotation)."""
+    return float(rotation_angles_deg(transform))
 
 
 def orthonormalised(transform: np.ndarray) -> np.ndarray:

@@ -116,7 +116,7 @@ def test_presets_and_camera_files_are_found_by_name_from_any_folder(tmp_path, mo
     with pytest.raises(ConfigError) as missing:
         load_config("fastest")
     assert str(missing.value) == (f"fastest: config file not found; give a YAML file, or a preset's name (default, "
-                                  f"fast, open3d, quality in {ROOT / 'configs'})")
+                                  f"fast, long, open3d, quality in {ROOT / 'configs'})")
     assert load_config(overrides=["input.camera_file=mine.yaml"]).input.camera_file == "mine.yaml"
 
 

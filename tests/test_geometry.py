@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from tambridge.geometry import (exp_se3, exp_se3_numba, exp_se3_torch, inverse, log_se3, look_at, pose_from_tum,
-                                rotation_angle_deg, tum_from_pose)
+                                rotation_angle_deg, rotation_angles_deg, tum_from_pose)
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 0.3, 3.0])
@@ -22,6 +22,15 @@ def test_rotation_angle_is_the_angle_the_rotation_was_made_with(angle):
     transform = exp_se3(np.concatenate([[0.1, 0.2, 0.3], axis * angle]))
     assert rotation_angle_deg(transform) == pytest.approx(np.degrees(angle), abs=1e-5)
     assert rotation_angle_deg(transform[:3, :3]) == rotation_angle_deg(inverse(transform))
+
+
+def test_rotation_angles_of_a_stack_are_each_transforms_angle():
+    rng = np.random.default_rng(5)
+    transforms = np.stack([exp_se3(rng.normal(size=6)) for _ in range(6)]).reshape(2, 3, 4, 4)
+    angles = rotation_angles_deg(transforms)
+    assert angles.shape == (2, 3)
+    np.testing.assert_array_equal(angles.ravel(), [rotation_angle_deg(t) for t in transforms.reshape(6, 4, 4)])
+    np.testing.assert_array_equal(rotation_angles_deg(transforms[..., :3, :3]), angles)
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-3, 0.3, 3.0])

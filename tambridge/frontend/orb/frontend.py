@@ -72,7 +72,7 @@ from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 from tambridge.frontend.contract import FrontendResult, KeyframeEvent, MapPointObservations, TrackResult, empty_timings
 from tambridge.frontend.orb.config import DenseDepthUse, OrbFrontendConfig, for_camera
 from tambridge.frontend.orb.vocabulary import KeyframeDatabase, Vocabulary
-from tambridge.geometry import interpolate_pose, inverse, poses_along, rotation_angle_deg
+from tambridge.geometry import interpolate_pose, inverse, poses_along, rotation_angle_deg, rotation_angles_deg
 from tambridge.io.tum import Frame
 from tambridge.trajectory import Trajectory
 
@@ -246,10 +246,15 @@ class OrbFrontend:
         keyframe_event = None
         camera_from_world = fix.camera_from_world
         if self._need_keyframe(features, fix):
-            self._wait_for_mapping()
-            keyframe = self._insert_keyframe(frame, features, fix)
-            keyframe_event = self._keyframe_event(keyframe)
-            camera_from_world = keyframe.camera_from_world  # after local BA when mapping runs inline
+            revisited = None if self._keyframe_requested else self._revisited_keyframe(fix.camera_from_world)
+            if revisited is None:
+                self._wait_for_mapping()
+                keyframe = self._insert_keyframe(frame, features, fix)
+                keyframe_event = self._keyframe_event(keyframe)
+                camera_from_world = keyframe.camera_from_world  # after local BA when mapping runs inline
+            elif self._dense_reference is not None and revisited.depth_reference is not None:
+                # The depth term's surface is the last keyframe's, which the camera may have left long ago.
+                self._dense_reference = revisited.depth_reference
         self._record(frame, camera_from_world, tracked=True)
         return TrackResult(
             frame_index=frame.index,
@@ -607,6 +612,24 @@ class OrbFrontend:
         c2 = (inliers < ratio * reference_tracked or need_close) and inliers > 15
         # A keyframe asked for by the mapper (request_keyframe) needs c2's inlier floor only.
         return ((c1b or c1c) and c2) or (self._keyframe_requested and inliers > 15)
+
+    def _revisited_keyframe(self, camera_from_world: np.ndarray) -> Keyframe | None:
+        """The nearest live keyframe of the frame's map segment within ``keyframe_revisit_distance_m`` and
+        ``keyframe_revisit_angle_deg`` of the pose ``camera_from_world`` (4, 4), where a keyframe would repeat it;
+        None where there is none or the rule is off. All of the segment's keyframes, not the local map's: on a
+        revisit the nearest is often not covisible with the reference keyframe."""
+        config = self.config
+        if config.keyframe_revisit_distance_m <= 0:
+            return None
+        candidates = [k for k in self.map.keyframes if not k.culled and k.segment == self._segment]
+        world_from_keyframes = np.stack([k.world_from_camera for k in candidates])
+        world_from_camera = inverse(camera_from_world)
+        distances_m = np.linalg.norm(world_from_keyframes[:, :3, 3] - world_from_camera[:3, 3], axis=1)
+        angles_deg = rotation_angles_deg(np.swapaxes(world_from_keyframes[:, :3, :3], 1, 2) @ world_from_camera[:3, :3])
+        near = (distances_m <= config.keyframe_revisit_distance_m) & (angles_deg <= config.keyframe_revisit_angle_deg)
+        if not near.any():
+            return None
+        return candidates[int(np.flatnonzero(near)[np.argmin(distances_m[near])])]
 
     def _insert_keyframe(self, frame: Frame, features: FrameFeatures, fix: PoseFix, run_mapping: bool = True) -> Keyframe:
         """Make the frame a keyframe with its tracked points and new points from depth, then hand it to local
