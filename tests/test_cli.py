@@ -4,6 +4,7 @@ import io
 import json
 import tarfile
 import threading
+import zlib
 
 import click
 import numpy as np
@@ -334,8 +335,11 @@ def test_a_frame_that_cannot_be_decoded_mid_run_leaves_a_run_that_says_it_is_unf
     shutil.copytree(synthetic_sequence_dir, sequence_dir)
     broken = open_sequence(sequence_dir).rgb_paths[4]
     whole = broken.read_bytes()
-    # The file starts and ends as a PNG does (the check before the run passes), with its image data zeroed.
-    broken.write_bytes(whole[:64] + bytes(len(whole) - 128) + whole[-64:])
+    # Its image data zeroed under a checksum that fits: every check before the run passes, decoding fails.
+    start = whole.index(b"IDAT") + 4
+    end = start + int.from_bytes(whole[start - 8:start - 4], "big")
+    broken.write_bytes(whole[:start] + bytes(end - start) + zlib.crc32(b"IDAT" + bytes(end - start)).to_bytes(4, "big")
+                       + whole[end + 4:])
     command = ["reconstruct", str(sequence_dir), "-o", str(tmp_path / "out"), "--max-frames", "8", "--quiet",
                "--set", "mapper.enabled=false", "--set", "mesh.enabled=false"]
     result = CliRunner().invoke(main, command)

@@ -6,6 +6,7 @@ image is read first), and checks the reader against it on every generated input.
 """
 
 import math
+import shutil
 from pathlib import Path
 
 import cv2
@@ -237,8 +238,8 @@ def test_truncated_images_are_named(tmp_path, kind, fraction):
     damaged = folder / (rgb_name if kind.startswith("rgb") else "depth/1.png")
     data = damaged.read_bytes()
     damaged.write_bytes(data[: int(len(data) * fraction)])
-    # An empty file, a JPEG without its end marker, a PNG without its IEND chunk (all refused on opening), or a PNG
-    # cut inside its last chunk that does not decode: each names the damaged file.
+    # An empty file, a JPEG without its end marker, a PNG without its IEND chunk, or a PNG cut inside its last chunk:
+    # each refused on opening, naming the damaged file.
     if fraction == 0.0:
         reason = "empty file"
     elif kind == "rgb.jpg":
@@ -246,7 +247,29 @@ def test_truncated_images_are_named(tmp_path, kind, fraction):
     elif b"IEND" not in data[: int(len(data) * fraction)]:
         reason = "PNG has no IEND chunk"
     else:
-        reason = "cannot decode image"
+        reason = "PNG chunk 'IEND' is cut short (truncated)"
     with pytest.raises(SequenceFormatError) as raised:
-        open_sequence(folder)[0]
+        open_sequence(folder)
     assert str(raised.value).startswith(f"{damaged}: {reason}"), str(raised.value)
+
+
+@pytest.mark.parametrize("kind", ["rgb", "depth"])
+@pytest.mark.parametrize("where", [0.1, 0.5, 0.9])
+def test_a_flipped_bit_in_a_png_is_refused_on_opening(synthetic_sequence_dir, tmp_path, kind, where):
+    """A PNG of the right length with one bit flipped (past its signature) is named before any frame is decoded."""
+    folder = tmp_path / "seq"
+    shutil.copytree(synthetic_sequence_dir, folder)
+    sequence = open_sequence(folder)
+    damaged = (sequence.rgb_paths if kind == "rgb" else sequence.depth_paths)[-1]
+    data = bytearray(damaged.read_bytes())
+    position = 8 + int((len(data) - 8) * where)
+    data[position] ^= 0x10
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(SequenceFormatError) as raised:
+        open_sequence(folder)
+    message = str(raised.value)
+    assert message.startswith(f"{damaged}: PNG ") and message.endswith("; re-extract the sequence"), message
+    assert "fails its checksum (corrupt)" in message or "(truncated)" in message, message
+    data[position] ^= 0x10
+    damaged.write_bytes(bytes(data))
+    assert len(open_sequence(folder)) == len(sequence)

@@ -165,9 +165,15 @@ def test_a_phone_jpeg_turned_by_its_exif_orientation_fits_the_camera_and_32_bit_
         open_sequence(folder)
 
 
-def test_png_that_ends_right_but_does_not_decode_is_named_on_reading(tmp_path):
+def test_png_that_ends_right_but_does_not_decode_is_named_on_opening_or_reading(tmp_path):
     _write_sequence(tmp_path / "seq", np.full((6, 8), 10000, np.uint16), CAMERA_8x6)
-    (tmp_path / "seq" / "depth" / "2.005.png").write_bytes(b"\x89PNG\r\n\x1a\nnot really\0\0\0\0IEND\xaeB`\x82")
+    broken = tmp_path / "seq" / "depth" / "2.005.png"
+    # Bytes that are no chunk between the signature and IEND: refused on opening.
+    broken.write_bytes(b"\x89PNG\r\n\x1a\nnot really\0\0\0\0IEND\xaeB`\x82")
+    with pytest.raises(SequenceFormatError, match=r"2\.005\.png: PNG chunk 'real' is cut short \(truncated\)"):
+        open_sequence(tmp_path / "seq")
+    # Whole chunks with right checksums but no image header: named when the frame is read.
+    broken.write_bytes(b"\x89PNG\r\n\x1a\n\0\0\0\0IEND\xaeB`\x82")
     sequence = open_sequence(tmp_path / "seq")
     with pytest.raises(SequenceFormatError, match=r"2\.005\.png: cannot decode image"):
         sequence[1]

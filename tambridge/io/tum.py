@@ -8,6 +8,7 @@ lazily, one at a time, so a sequence of any length costs the memory of a frame.
 from __future__ import annotations
 
 import dataclasses
+import zlib
 from pathlib import Path
 
 import cv2
@@ -342,6 +343,34 @@ def check_image_file(path: Path, listed_in: str) -> None:
         raise SequenceFormatError(f"{path}: PNG has no IEND chunk (truncated); re-extract the sequence")
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def check_png_checksums(path: Path) -> None:
+    """Raise :class:`SequenceFormatError` naming ``path`` and the fix where a PNG's chunks up to IEND are cut short
+    or fail their CRC-32: a bit flipped anywhere in the file, which the checks of :func:`check_image_file` miss and
+    decoding meets only when the run reaches the frame. Reads the whole file, decodes nothing; other formats pass."""
+    data = path.read_bytes()
+    if not data.startswith(PNG_SIGNATURE):
+        return
+    position = len(PNG_SIGNATURE)
+    while True:
+        if position + 8 > len(data):
+            raise SequenceFormatError(f"{path}: PNG ends inside a chunk header (truncated); re-extract the sequence")
+        length = int.from_bytes(data[position:position + 4], "big")
+        name = data[position + 4:position + 8]
+        end = position + 8 + length
+        if end + 4 > len(data):
+            raise SequenceFormatError(f"{path}: PNG chunk {name.decode('latin-1')!r} is cut short (truncated); "
+                                      "re-extract the sequence")
+        if zlib.crc32(data[position + 4:end]) != int.from_bytes(data[end:end + 4], "big"):
+            raise SequenceFormatError(f"{path}: PNG chunk {name.decode('latin-1')!r} fails its checksum (corrupt); "
+                                      "re-extract the sequence")
+        if name == PNG_END:
+            return
+        position = end + 4
+
+
 SIXTEEN_BIT_GREY_MODES = ("I;16", "I;16B", "I;16L", "I")
 """Pillow's modes of a single-channel 16-bit image, the one depth format the reader takes (Pillow before 10 opens a
 16-bit grey PNG as ``I``: that mode is taken from PNGs only, another format's ``I`` being 32-bit)."""
@@ -434,8 +463,9 @@ def open_sequence(
     """Open a TUM-layout folder: associate colour and depth, pick the camera, load ground truth if present.
 
     ``stride`` keeps every n-th associated frame, ``max_frames`` caps the count after striding.
-    The depth scale is checked on the first frames that have depth (:func:`check_depth_scale_plausible`), and the
-    first frame's sizes against the camera (:func:`check_first_frame`).
+    Every frame's images are checked before any is decoded (present, not truncated, PNG checksums, headers); the depth
+    scale on the first frames that have depth (:func:`check_depth_scale_plausible`), and the first frame's sizes
+    against the camera (:func:`check_first_frame`).
     """
     folder = Path(folder)
     check_sequence_folder(folder)
@@ -479,6 +509,8 @@ def open_sequence(
     for rgb_path, depth_path in zip(sequence.rgb_paths, sequence.depth_paths):
         check_image_file(rgb_path, "rgb.txt")
         check_image_file(depth_path, "depth.txt")
+    for path in (*sequence.rgb_paths, *sequence.depth_paths):
+        check_png_checksums(path)
     sequence.check_frame_headers()
     if check_depth_scale:
         check_depth_scale_plausible(sequence)
