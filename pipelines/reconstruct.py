@@ -169,7 +169,7 @@ def reconstruct(
                                          mapping=mapping, run_log=run_log, counters=counters)
             checkpoints = KeyframeCheckpoints(checkpoint_file, config.checkpoint.every_keyframes, snapshot,
                                               counters.keyframes, config.checkpoint.min_interval_s,
-                                              config.checkpoint.max_time_share)
+                                              config.checkpoint.max_time_share, config.checkpoint.max_interval_s)
         with contextlib.ExitStack() as viewing:
             live_view = RerunViewer(viewer, sequence.camera) if viewer else None
             if live_view is not None:
@@ -322,9 +322,9 @@ def track_frames(
                 with run_log.stage("viewer"):
                     live_view.log_frame(frame.index, frame.timestamp_s, result.world_from_camera, frame.rgb,
                                         frame.depth_m, result.is_keyframe)
-            if checkpoints is not None and result.is_keyframe:
+            if checkpoints is not None:
                 with run_log.stage("checkpoint"):
-                    checkpoints.after_keyframe(index + 1)
+                    checkpoints.after_frame(index + 1, result.is_keyframe)
             if stops is not None and stops.requested is not None:
                 stop_after_frame(stops.requested, index + 1, len(sequence), checkpoints, run_log)
         if checkpoints is not None and tracked_after_first:

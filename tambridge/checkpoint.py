@@ -67,6 +67,10 @@ class CheckpointConfig:
     max_time_share: float = setting(0.02, "after a checkpoint that took t seconds, the next waits at least "
                                           "t / max_time_share seconds (checkpoints take at most this share of the run)",
                                     FRACTION)
+    # Keyframes stop coming where a camera stays on ground its map covers (keyframe_revisit_distance_m), and with
+    # them the checkpoints of every_keyframes.
+    max_interval_s: float = setting(600.0, "seconds of wall time after which a checkpoint is written after the next "
+                                           "frame, however few keyframes came (0: only every_keyframes)", NON_NEGATIVE)
 
 
 @dataclasses.dataclass
@@ -358,20 +362,22 @@ def check_resumable(path: Path, checkpoint: Checkpoint, config: dict, sequence: 
 class KeyframeCheckpoints:
     """Writes a checkpoint after a keyframe once ``every_keyframes`` keyframes (never when it is 0) and
     ``min_interval_s`` seconds of wall time have passed since the last checkpoint (or the start), and at least the
-    last checkpoint's seconds (snapshot and write) over ``max_time_share``.
+    last checkpoint's seconds (snapshot and write) over ``max_time_share``; after any frame once ``max_interval_s``
+    (0: never) and that least wait have passed.
 
     ``snapshot(next_frame)`` builds the :class:`Checkpoint` when one is due.
     """
 
     def __init__(self, path: Path, every_keyframes: int, snapshot: Callable[[int], Checkpoint],
                  keyframes_so_far: int = 0, min_interval_s: float = 0.0, max_time_share: float = 1.0,
-                 clock: Callable[[], float] = time.perf_counter) -> None:
+                 max_interval_s: float = 0.0, clock: Callable[[], float] = time.perf_counter) -> None:
         if every_keyframes < 0:
             raise CheckpointError(f"checkpoint.every_keyframes={every_keyframes}: expected 0 (off) or a positive count")
         self.path = Path(path)
         self.every_keyframes = every_keyframes
         self.min_interval_s = min_interval_s
         self.max_time_share = max_time_share
+        self.max_interval_s = max_interval_s
         self.snapshot = snapshot
         self.keyframes = keyframes_so_far
         self.clock = clock
@@ -380,12 +386,16 @@ class KeyframeCheckpoints:
         self._interval_s = min_interval_s
         self._next_frame_written: int | None = None
 
-    def after_keyframe(self, next_frame: int) -> None:
-        """Call after each keyframe is tracked and mapped; ``next_frame`` is the index of the frame that comes next."""
-        self.keyframes += 1
-        if not self.every_keyframes or self.keyframes - self._keyframes_at_last < self.every_keyframes:
+    def after_frame(self, next_frame: int, is_keyframe: bool) -> None:
+        """Call after each frame is tracked and mapped; ``next_frame`` is the index of the frame that comes next."""
+        self.keyframes += is_keyframe
+        if not self.every_keyframes:
             return
-        if self.clock() - self._time_of_last >= self._interval_s:
+        waited_s = self.clock() - self._time_of_last
+        if waited_s < self._interval_s:
+            return
+        if ((is_keyframe and self.keyframes - self._keyframes_at_last >= self.every_keyframes)
+                or 0 < self.max_interval_s <= waited_s):
             self.write(next_frame)
 
     def write(self, next_frame: int) -> None:

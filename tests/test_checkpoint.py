@@ -430,6 +430,29 @@ def test_checkpoints_wait_long_enough_to_take_at_most_their_share_of_the_run(mon
                                       min_interval_s=20.0, max_time_share=0.05, clock=lambda: now[0])
     for frame, time_s in enumerate(times_s):
         now[0] = time_s
-        checkpoints.after_keyframe(frame)
+        checkpoints.after_frame(frame, is_keyframe=True)
     # 20 s after the start; then 20 s after a 1 s write (1 / 0.05); 60 s after a 3 s write; 20 s after a quick one.
     assert written == [20.0, 41.0, 104.0, 124.2]
+
+
+def test_frames_without_keyframes_still_checkpoint_after_max_interval(monkeypatch, tmp_path):
+    """A camera on ground its map covers makes no keyframes (the long preset): a checkpoint still comes after the first
+    frame max_interval_s after the last one, keyframe or not; the keyframe count still counts only keyframes."""
+    now = [0.0]
+    monkeypatch.setattr(checkpoint_module, "save_checkpoint", lambda path, checkpoint: 1000)
+    written = []
+    checkpoints = KeyframeCheckpoints(tmp_path / "checkpoint", 2, lambda next_frame: written.append(next_frame),
+                                      min_interval_s=20.0, max_interval_s=100.0, clock=lambda: now[0])
+    # (seconds, keyframe?) for frames 0-7: two keyframes by 30 s, then none.
+    for frame, (time_s, is_keyframe) in enumerate([(10.0, True), (30.0, True), (60.0, False), (99.0, False),
+                                                   (129.0, False), (131.0, False), (200.0, False), (231.0, False)]):
+        now[0] = time_s
+        checkpoints.after_frame(frame + 1, is_keyframe)
+    # After the second keyframe (30 s); after the first frame 100 s later (131 s); 100 s after that (231 s).
+    assert written == [2, 6, 8] and checkpoints.keyframes == 2
+    never = KeyframeCheckpoints(tmp_path / "checkpoint", 2, lambda next_frame: written.append(-1),
+                                min_interval_s=20.0, max_interval_s=0.0, clock=lambda: now[0])
+    for frame in range(5):
+        now[0] += 1000.0
+        never.after_frame(frame + 1, is_keyframe=False)
+    assert -1 not in written

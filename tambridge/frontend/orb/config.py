@@ -129,8 +129,9 @@ class OrbFrontendConfig:
     # The rule above makes a keyframe about every keyframe_min_frames frames wherever the camera is (a frame rarely
     # tracks keyframe_tracked_ratio of a keyframe's points), so a camera back where it has been adds keyframes that
     # repeat old ones, and a long session's keyframes, map and cost grow with its frames (docs/benchmarks.md).
-    keyframe_revisit_distance_m: float = setting(0.0, "no keyframe is made where a keyframe of the map (the frame's "
-                                                      "segment) lies within this distance (m; 0: off) ...",
+    keyframe_revisit_distance_m: float = setting(0.0, "a keyframe due for coverage alone (not for weak tracking or "
+                                                      "the mapper) is not made where a live keyframe of the frame's "
+                                                      "map segment lies within this distance (m; 0: off) ...",
                                                  NON_NEGATIVE)
     keyframe_revisit_angle_deg: float = setting(4.0, "... and this rotation (degrees) of the frame", POSITIVE)
     min_new_points: int = setting(100, "a new keyframe makes at least this many map points (the closest)", NON_NEGATIVE)

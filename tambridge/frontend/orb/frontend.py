@@ -42,6 +42,7 @@ and results are deterministic. ``timings_s`` sums wall time per stage over both 
 from __future__ import annotations
 
 import dataclasses
+import enum
 import logging
 import queue
 import threading
@@ -84,6 +85,15 @@ JOIN_KEYFRAMES = 5  # an unjoined segment's newest keyframes tried against the p
 RELOCALISATION_CANDIDATES = 5
 # Refinement from the motion prior is kept when at least this fraction of the matches stay inliers.
 PRIOR_MIN_INLIER_FRACTION = 0.5
+
+
+class KeyframeTrigger(enum.Enum):
+    """Why tracking asks for a keyframe (:meth:`OrbFrontend._keyframe_trigger`)."""
+
+    none = "none"
+    coverage = "coverage"  # keyframe_min_frames frames since the last keyframe, or many close points untracked
+    weak = "weak"  # under a quarter of the reference keyframe's points tracked
+    requested = "requested"  # the mapper asked (request_keyframe)
 
 
 @dataclasses.dataclass
@@ -245,16 +255,14 @@ class OrbFrontend:
         self._frames_since_keyframe += 1
         keyframe_event = None
         camera_from_world = fix.camera_from_world
-        if self._need_keyframe(features, fix):
-            revisited = None if self._keyframe_requested else self._revisited_keyframe(fix.camera_from_world)
-            if revisited is None:
-                self._wait_for_mapping()
-                keyframe = self._insert_keyframe(frame, features, fix)
-                keyframe_event = self._keyframe_event(keyframe)
-                camera_from_world = keyframe.camera_from_world  # after local BA when mapping runs inline
-            elif self._dense_reference is not None and revisited.depth_reference is not None:
-                # The depth term's surface is the last keyframe's, which the camera may have left long ago.
-                self._dense_reference = revisited.depth_reference
+        trigger = self._keyframe_trigger(features, fix)
+        # Only coverage gives way to a revisit: weak tracking and the mapper's requests still make keyframes.
+        revisited = trigger is KeyframeTrigger.coverage and self._revisited_keyframe(fix.camera_from_world) is not None
+        if trigger is not KeyframeTrigger.none and not revisited:
+            self._wait_for_mapping()
+            keyframe = self._insert_keyframe(frame, features, fix)
+            keyframe_event = self._keyframe_event(keyframe)
+            camera_from_world = keyframe.camera_from_world  # after local BA when mapping runs inline
         self._record(frame, camera_from_world, tracked=True)
         return TrackResult(
             frame_index=frame.index,
@@ -590,10 +598,11 @@ class OrbFrontend:
         best = self.map.keyframes[int(np.argmax(votes))]
         return best if best.segment == self._segment else self._reference
 
-    def _need_keyframe(self, features: FrameFeatures, fix: PoseFix) -> bool:
+    def _keyframe_trigger(self, features: FrameFeatures, fix: PoseFix) -> KeyframeTrigger:
         """ORB-SLAM2's NeedNewKeyFrame for RGB-D, without its dependence on whether local mapping is idle (see
-        the module docstring): enough frames since the last keyframe or weak tracking, and fewer points
-        tracked than ``keyframe_tracked_ratio`` of the reference keyframe's (or many close points untracked)."""
+        the module docstring): enough frames since the last keyframe, many close points untracked or weak tracking,
+        and fewer points tracked than ``keyframe_tracked_ratio`` of the reference keyframe's (or many close points
+        untracked); then why (:class:`KeyframeTrigger`)."""
         config = self.config
         points = self.map.points
         reference_ids = self.map.good_point_ids(self._reference)
@@ -608,10 +617,16 @@ class OrbFrontend:
         ratio = 0.4 if len(self.map.keyframes) < 2 else config.keyframe_tracked_ratio
         inliers = fix.inlier_count
         c1b = self._frames_since_keyframe >= config.keyframe_min_frames
-        c1c = inliers < 0.25 * reference_tracked or need_close
+        weak = inliers < 0.25 * reference_tracked  # with need_close, ORB-SLAM's c1c
         c2 = (inliers < ratio * reference_tracked or need_close) and inliers > 15
         # A keyframe asked for by the mapper (request_keyframe) needs c2's inlier floor only.
-        return ((c1b or c1c) and c2) or (self._keyframe_requested and inliers > 15)
+        if self._keyframe_requested and inliers > 15:
+            return KeyframeTrigger.requested
+        if not c2:
+            return KeyframeTrigger.none
+        if weak:
+            return KeyframeTrigger.weak
+        return KeyframeTrigger.coverage if c1b or need_close else KeyframeTrigger.none
 
     def _revisited_keyframe(self, camera_from_world: np.ndarray) -> Keyframe | None:
         """The nearest live keyframe of the frame's map segment within ``keyframe_revisit_distance_m`` and
@@ -622,10 +637,9 @@ class OrbFrontend:
         if config.keyframe_revisit_distance_m <= 0:
             return None
         candidates = [k for k in self.map.keyframes if not k.culled and k.segment == self._segment]
-        world_from_keyframes = np.stack([k.world_from_camera for k in candidates])
-        world_from_camera = inverse(camera_from_world)
-        distances_m = np.linalg.norm(world_from_keyframes[:, :3, 3] - world_from_camera[:3, 3], axis=1)
-        angles_deg = rotation_angles_deg(np.swapaxes(world_from_keyframes[:, :3, :3], 1, 2) @ world_from_camera[:3, :3])
+        camera_from_keyframes = camera_from_world @ np.stack([k.world_from_camera for k in candidates])
+        distances_m = np.linalg.norm(camera_from_keyframes[:, :3, 3], axis=1)
+        angles_deg = rotation_angles_deg(camera_from_keyframes)
         near = (distances_m <= config.keyframe_revisit_distance_m) & (angles_deg <= config.keyframe_revisit_angle_deg)
         if not near.any():
             return None
