@@ -285,7 +285,7 @@ def track_frames(
     the last frame is checkpointed too, before the frontend's finish, where this call tracked a frame after the first.
 
     After each frame ``counters`` count it, the mapping stage may ask the frontend for a keyframe where its map lacks
-    coverage, ``live_view`` shows it and ``checkpoints`` are told of a keyframe (once it is mapped).
+    coverage, ``live_view`` shows it and ``checkpoints`` are told of it (once it is mapped).
     ``prefetch``: frames i+1 and i+2 are read in one worker thread and their ``frontend.extract`` (where the frontend
     has one) made in another while frame i is tracked (:class:`FramePrefetcher`), with the results of reading and
     tracking one frame after the other. Stage "frame_reading" is the time spent waiting for the next frame (reading

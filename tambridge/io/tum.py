@@ -347,18 +347,23 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def check_png_checksums(path: Path) -> None:
-    """Raise :class:`SequenceFormatError` naming ``path`` and the fix where a PNG's chunks up to IEND are cut short
-    or fail their CRC-32: a bit flipped anywhere in the file, which the checks of :func:`check_image_file` miss and
-    decoding meets only when the run reaches the frame. Reads the whole file, decodes nothing; other formats pass."""
-    data = path.read_bytes()
-    if not data.startswith(PNG_SIGNATURE):
+    """Raise :class:`SequenceFormatError` naming ``path`` and the fix where a PNG's signature is damaged or its chunks
+    up to IEND are cut short or fail their CRC-32: a bit flipped anywhere up to IEND, which the checks of
+    :func:`check_image_file` miss and decoding meets only when the run reaches the frame. Reads the whole file,
+    decodes nothing; other formats pass. Damage under checksums that fit (a deflate stream written wrong) is left
+    to decoding."""
+    data = memoryview(path.read_bytes())
+    if data[:len(PNG_SIGNATURE)] != PNG_SIGNATURE:
+        # The signature has no checksum: a PNG whose signature took the flip still has "PNG" or its IHDR chunk.
+        if data[1:4] == b"PNG" or data[12:16] == b"IHDR":
+            raise SequenceFormatError(f"{path}: PNG signature damaged (corrupt); re-extract the sequence")
         return
     position = len(PNG_SIGNATURE)
     while True:
         if position + 8 > len(data):
             raise SequenceFormatError(f"{path}: PNG ends inside a chunk header (truncated); re-extract the sequence")
         length = int.from_bytes(data[position:position + 4], "big")
-        name = data[position + 4:position + 8]
+        name = bytes(data[position + 4:position + 8])
         end = position + 8 + length
         if end + 4 > len(data):
             raise SequenceFormatError(f"{path}: PNG chunk {name.decode('latin-1')!r} is cut short (truncated); "
@@ -509,9 +514,9 @@ def open_sequence(
     for rgb_path, depth_path in zip(sequence.rgb_paths, sequence.depth_paths):
         check_image_file(rgb_path, "rgb.txt")
         check_image_file(depth_path, "depth.txt")
+    sequence.check_frame_headers()
     for path in (*sequence.rgb_paths, *sequence.depth_paths):
         check_png_checksums(path)
-    sequence.check_frame_headers()
     if check_depth_scale:
         check_depth_scale_plausible(sequence)
     check_first_frame(sequence)
