@@ -9,7 +9,7 @@ import pytest
 from tambridge.evaluation.trajectory import ate_rmse_m
 from tambridge.frontend.orb.config import OrbFrontendConfig
 from tambridge.frontend.orb.frontend import OrbFrontend
-from tambridge.geometry import inverse, rotation_angle_deg
+from tambridge.geometry import exp_se3, inverse, rotation_angle_deg
 from tambridge.io.synthetic import default_camera, loop_path, make_room_scene, render
 from tambridge.io.tum import Frame
 from tambridge.trajectory import Trajectory
@@ -83,10 +83,7 @@ def test_revisits_without_keyframes_are_tracked_as_accurately(two_laps, with_and
 
 def _at(world_from_camera: np.ndarray, roll_deg: float = 0.0) -> np.ndarray:
     """``camera_from_world`` (4, 4) of a camera at ``world_from_camera`` turned by ``roll_deg`` about its optical axis."""
-    roll = np.eye(4)
-    angle = np.radians(roll_deg)
-    roll[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
-    return inverse(world_from_camera @ roll)
+    return inverse(world_from_camera @ exp_se3(np.array([0.0, 0.0, 0.0, 0.0, 0.0, np.radians(roll_deg)])))
 
 
 def test_the_revisited_keyframe_is_the_nearest_within_both_bounds_anywhere_in_the_segment(two_laps):

@@ -317,7 +317,8 @@ class RgbdSequence:
 
 JPEG_START = b"\xff\xd8"
 JPEG_END = b"\xff\xd9"
-PNG_START = b"\x89PNG"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_START = PNG_SIGNATURE[:4]
 PNG_END = b"IEND"
 
 
@@ -341,9 +342,6 @@ def check_image_file(path: Path, listed_in: str) -> None:
         raise SequenceFormatError(f"{path}: JPEG has no end marker (truncated); re-extract the sequence")
     if start == PNG_START and PNG_END not in tail:
         raise SequenceFormatError(f"{path}: PNG has no IEND chunk (truncated); re-extract the sequence")
-
-
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def check_png_checksums(path: Path) -> None:
