@@ -11,8 +11,10 @@ from tambridge.frontend.orb.bundle_adjustment import (
     BundleProblem,
     DepthPair,
     _linearise_kernel,
+    _reduced_system,
     bundle_cost,
     linearise_reference,
+    reduced_system_reference,
     solve_bundle_adjustment,
 )
 from tambridge.frontend.orb.dense_depth import DenseTerm, dense_pair_normal_equations, dense_reference, dense_samples
@@ -152,6 +154,22 @@ def test_linearisation_kernel_matches_reference(robust):
     slow = linearise_reference(problem, weights, thresholds, robust, variable_index)
     for a, b in zip(fast, slow):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+
+
+def test_reduced_system_kernel_matches_dense_schur_complement():
+    problem, _, _ = make_problem(seed=5, cameras=5, points=80, depth_noise_per_m=0.003)
+    weights = row_weights(problem.observations, problem.inv_sigma2, problem.depth_noise_per_m)
+    variable_index = np.where(problem.fixed_cameras, -1, np.cumsum(~problem.fixed_cameras) - 1)
+    linearised = linearise_reference(problem, weights, chi2_thresholds(weights), True, variable_index)
+    obs_variable = variable_index[problem.observation_camera]
+    order = np.flatnonzero(obs_variable >= 0)
+    order = order[np.argsort(problem.observation_point[order], kind="stable")]
+    point_start = np.searchsorted(problem.observation_point[order], np.arange(len(problem.points_world) + 1))
+    for damping in (0.0, 1e-4, 3.0):
+        fast = _reduced_system(*linearised, damping, problem.observation_point, obs_variable, point_start, order)
+        slow = reduced_system_reference(*linearised, damping, problem.observation_point, obs_variable)
+        for a, b in zip(fast, slow):
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.abs(b).max())
 
 
 def test_gradient_matches_finite_differences():

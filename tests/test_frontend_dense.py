@@ -14,6 +14,7 @@ from tambridge.frontend.orb.dense_depth import (
     dense_jacobian_reference,
     dense_normal_equations,
     dense_normal_equations_reference,
+    dense_pair_cost,
     dense_pair_jacobian_reference,
     dense_pair_normal_equations,
     dense_pair_normal_equations_reference,
@@ -188,6 +189,7 @@ def test_pair_kernel_matches_its_twin_and_holds_the_motion_only_term(views):
     np.testing.assert_allclose(hessian, twin[0], rtol=1e-9, atol=1e-9 * np.abs(twin[0]).max())
     np.testing.assert_allclose(gradient, twin[1], rtol=1e-9, atol=1e-9 * np.abs(twin[1]).max())
     assert cost == pytest.approx(twin[2], rel=1e-9)
+    assert dense_pair_cost(camera_from_world, reference_from_world, term) == pytest.approx(twin[2], rel=1e-12)
     moved = dataclasses.replace(term, reference_from_world=reference_from_world)
     motion_only = dense_normal_equations(camera_from_world, moved)
     np.testing.assert_allclose(hessian[:6, :6], motion_only[0], rtol=1e-12)

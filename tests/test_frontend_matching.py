@@ -244,6 +244,6 @@ def test_map_points_take_the_distinctive_descriptor_of_their_observations():
         features = FrameFeatures(np.zeros((n, 2)), np.zeros(n, np.int32), descriptors, np.ones(n), np.zeros((n, 3)),
                                  np.zeros((n, 3), np.uint8))
         slam_map.keyframes.append(Keyframe(keyframe_id, keyframe_id, 0.0, np.eye(4), features, ids[:n].copy(), 0))
-    slam_map.update_descriptors(ids)
-    np.testing.assert_array_equal(slam_map.points.descriptors[ids[0]], centres[0])
-    np.testing.assert_array_equal(slam_map.points.descriptors[ids[1]], centres[1])
+    chosen_ids, descriptors = slam_map.distinctive_descriptors(ids)
+    np.testing.assert_array_equal(chosen_ids, ids)
+    np.testing.assert_array_equal(descriptors, centres)

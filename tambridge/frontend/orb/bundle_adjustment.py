@@ -18,7 +18,7 @@ import scipy.linalg
 from threadpoolctl import ThreadpoolController
 
 from tambridge.camera import pinhole_inverse_depth_numba
-from tambridge.frontend.orb.dense_depth import DenseTerm, dense_normal_equations, dense_pair_normal_equations
+from tambridge.frontend.orb.dense_depth import DenseTerm, dense_pair_cost, dense_pair_normal_equations
 from tambridge.frontend.orb.reprojection import (
     MIN_DEPTH_M,
     chi2_thresholds,
@@ -79,10 +79,9 @@ class DepthPair:
 
 
 def _pairs_cost(pairs, camera_from_world: np.ndarray) -> float:
-    """0.5 * the depth edges' robust cost (the BA cost's convention); the camera's system alone has the same cost
-    at a quarter of the pair system's work."""
-    return 0.5 * sum(dense_normal_equations(camera_from_world[pair.camera], dataclasses.replace(
-        pair.term, reference_from_world=camera_from_world[pair.reference]))[2] for pair in pairs)
+    """0.5 * the depth edges' robust cost (the BA cost's convention)."""
+    return 0.5 * sum(dense_pair_cost(camera_from_world[pair.camera], camera_from_world[pair.reference], pair.term)
+                     for pair in pairs)
 
 
 def _add_pairs(pairs, camera_from_world, variable_index, h_cc, b_c):
@@ -242,15 +241,36 @@ def linearise_reference(problem: "BundleProblem", weights: np.ndarray, threshold
 
 
 @numba.njit(cache=True, nogil=True)
+def _inverse_3x3(a, out):
+    """``out`` (3, 3) = the inverse of ``a`` (3, 3) by its adjugate: a LAPACK call per point block costs more than
+    the arithmetic."""
+    c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+    c01 = a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]
+    c02 = a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]
+    c10 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
+    c11 = a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]
+    c12 = a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]
+    c20 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
+    c21 = a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]
+    c22 = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+    inverse_det = 1.0 / (a[0, 0] * c00 + a[0, 1] * c10 + a[0, 2] * c20)
+    out[0, 0], out[0, 1], out[0, 2] = c00 * inverse_det, c01 * inverse_det, c02 * inverse_det
+    out[1, 0], out[1, 1], out[1, 2] = c10 * inverse_det, c11 * inverse_det, c12 * inverse_det
+    out[2, 0], out[2, 1], out[2, 2] = c20 * inverse_det, c21 * inverse_det, c22 * inverse_det
+
+
+@numba.njit(cache=True, nogil=True)
 def _reduced_system(h_cc, b_c, h_pp, b_p, h_cp, damping, obs_point, obs_variable, point_start, order):
-    """Damped Schur complement: ``(S (6V, 6V), rhs (6V,), inverse damped H_pp (P, 3, 3))``."""
+    """Damped Schur complement: ``(S (6V, 6V), rhs (6V,), inverse damped H_pp (P, 3, 3))``;
+    :func:`reduced_system_reference` is its slow twin."""
     n_variable, n_points = h_cc.shape[0], h_pp.shape[0]
     h_pp_inverse = np.empty_like(h_pp)
+    block = np.empty((3, 3))
     for p in range(n_points):
-        block = h_pp[p].copy()
+        block[:] = h_pp[p]
         for i in range(3):
-            block[i, i] += damping * block[i, i] + 1e-12
-        h_pp_inverse[p] = np.linalg.inv(block)
+            block[i, i] += damping * h_pp[p, i, i] + 1e-12
+        _inverse_3x3(block, h_pp_inverse[p])
     reduced = np.zeros((6 * n_variable, 6 * n_variable))
     rhs = np.zeros(6 * n_variable)
     for v in range(n_variable):
@@ -283,16 +303,36 @@ def _reduced_system(h_cc, b_c, h_pp, b_p, h_cp, damping, obs_point, obs_variable
                 if vb < va:
                     continue
                 for i in range(6):
+                    y0, y1, y2 = y_blocks[a, i, 0], y_blocks[a, i, 1], y_blocks[a, i, 2]
+                    row = 6 * va + i
                     for j in range(6):
-                        reduced[6 * va + i, 6 * vb + j] -= (
-                            y_blocks[a, i, 0] * h_cp[b, j, 0] + y_blocks[a, i, 1] * h_cp[b, j, 1] + y_blocks[a, i, 2] * h_cp[b, j, 2]
-                        )
+                        reduced[row, 6 * vb + j] -= y0 * h_cp[b, j, 0] + y1 * h_cp[b, j, 1] + y2 * h_cp[b, j, 2]
     for va in range(n_variable):
         for vb in range(va + 1, n_variable):
             for i in range(6):
                 for j in range(6):
                     reduced[6 * vb + j, 6 * va + i] = reduced[6 * va + i, 6 * vb + j]
     return reduced, rhs, h_pp_inverse
+
+
+def reduced_system_reference(h_cc, b_c, h_pp, b_p, h_cp, damping, obs_point, obs_variable):
+    """Slow twin of :func:`_reduced_system` from the whole damped normal equations, dense:
+    ``S = H_cc - H_cp H_pp^-1 H_cp^T`` and ``rhs = b_c - H_cp H_pp^-1 b_p``, with ``(S, rhs, H_pp^-1 (P, 3, 3))``."""
+    n_variable, n_points = len(h_cc), len(h_pp)
+    damped_h_pp = h_pp + (damping * np.diagonal(h_pp, axis1=1, axis2=2)[:, :, None] + 1e-12) * np.eye(3)
+    h_pp_inverse = np.linalg.inv(damped_h_pp)
+    h_cc_full = np.zeros((6 * n_variable, 6 * n_variable))
+    for v in range(n_variable):
+        h_cc_full[6 * v:6 * v + 6, 6 * v:6 * v + 6] = h_cc[v] + np.diag(damping * np.diag(h_cc[v]) + 1e-12)
+    h_cp_full = np.zeros((6 * n_variable, 3 * n_points))
+    for o in np.flatnonzero(obs_variable >= 0):
+        v, p = obs_variable[o], obs_point[o]
+        h_cp_full[6 * v:6 * v + 6, 3 * p:3 * p + 3] += h_cp[o]
+    h_pp_inverse_full = np.zeros((3 * n_points, 3 * n_points))
+    for p in range(n_points):
+        h_pp_inverse_full[3 * p:3 * p + 3, 3 * p:3 * p + 3] = h_pp_inverse[p]
+    y = h_cp_full @ h_pp_inverse_full
+    return h_cc_full - y @ h_cp_full.T, b_c.reshape(-1) - y @ b_p.reshape(-1), h_pp_inverse
 
 
 @numba.njit(cache=True, nogil=True)

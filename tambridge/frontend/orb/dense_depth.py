@@ -103,9 +103,10 @@ def dense_samples(depth_m: np.ndarray, K: np.ndarray, stride: int, min_depth_m: 
 
 @numba.njit(cache=True, nogil=True)
 def _dense_system(camera_from_world, reference_from_world, samples, reference_points, normals, stride, fx, fy, cx, cy,
-                  sample_weight, noise, huber, max_distance, with_reference):
+                  sample_weight, noise, huber, max_distance, with_reference, with_system=True):
     """Point-to-plane Gauss-Newton system over the camera's update (size 6) or, ``with_reference``, over
-    ``[delta_camera, delta_reference]`` (size 12): ``(H, g, cost, associated count)``."""
+    ``[delta_camera, delta_reference]`` (size 12): ``(H, g, cost, associated count)``; without ``with_system``
+    H and g stay zero (the cost alone)."""
     size = 12 if with_reference else 6
     hessian = np.zeros((size, size))
     gradient = np.zeros(size)
@@ -151,6 +152,8 @@ def _dense_system(camera_from_world, reference_from_world, samples, reference_po
         else:
             cost += sample_weight * whitened2
         count += 1
+        if not with_system:
+            continue
         # m = R^T n: the normal in the current camera; J = [m, p x m].
         mx = rotation[0, 0] * nx + rotation[1, 0] * ny + rotation[2, 0] * nz
         my = rotation[0, 1] * nx + rotation[1, 1] * ny + rotation[2, 1] * nz
@@ -237,6 +240,14 @@ def dense_pair_normal_equations(camera_from_world: np.ndarray, reference_from_wo
     ``[delta_camera, delta_reference]``."""
     return _dense_system(np.ascontiguousarray(camera_from_world, np.float64),
                          np.ascontiguousarray(reference_from_world, np.float64), *kernel_arguments(term)[1:], True)
+
+
+def dense_pair_cost(camera_from_world: np.ndarray, reference_from_world: np.ndarray, term: DenseTerm) -> float:
+    """The term's robust cost at these two poses (``term.reference_from_world`` is not used), as
+    :func:`dense_pair_normal_equations` gives it, without building the system."""
+    return _dense_system(np.ascontiguousarray(camera_from_world, np.float64),
+                         np.ascontiguousarray(reference_from_world, np.float64), *kernel_arguments(term)[1:], False,
+                         False)[2]
 
 
 def dense_residuals_reference(camera_from_world: np.ndarray, term: DenseTerm) -> tuple[np.ndarray, ...]:

@@ -567,6 +567,8 @@ class OrbFrontend:
         """First keyframe of a map segment from the frame's depth (None if it has too little depth)."""
         if int(features.has_depth.sum()) < MIN_KEYPOINTS_WITH_DEPTH_TO_START:
             return None
+        # The keyframe changes the map, which the mapping thread reads without the lock: wait for it first.
+        self._wait_for_mapping()
         previous = self.map.keyframes[-1] if self.map.keyframes else None
         camera_from_world_last = self._camera_from_world_last()
         if camera_from_world_last is None:
@@ -696,10 +698,13 @@ class OrbFrontend:
         with self._lock:
             keyframe.bow_words, keyframe.bow_weights = words, weights
         if run_mapping:
+            # Tracking, the one other thread, holds the lock for each frame and only reads the map while keyframes
+            # are mapped (it waits for this thread before it adds one): so this thread reads the map without the
+            # lock and takes it for its changes alone, and tracking goes on meanwhile.
             with self._lock:
                 cull_recent_points(self.map, keyframe)
-                with self._timed("matching"):
-                    fuse_with_neighbours(self.map, keyframe, self.camera, config)
+            with self._timed("matching"):
+                fuse_with_neighbours(self.map, keyframe, self.camera, config, self._lock)
             with self._timed("local_ba"):
                 local_bundle_adjustment(self.map, keyframe, self.K, config, self._lock)
             if config.keyframe_culling:
@@ -709,9 +714,10 @@ class OrbFrontend:
                         self.database.redirect(keyframe_id, self.map.keyframes[keyframe_id].parent)
                     self.keyframes_culled += len(culled)
             if config.loop_closure and self._keyframes_since_loop >= config.loop_cooldown_keyframes:
-                with self._timed("loop"), self._lock:
+                with self._timed("loop"):
                     loop = detect_loop(self.map, keyframe, self.database, self.camera, config, self._loop_consistency)
-                    if loop is not None:
+                if loop is not None:
+                    with self._timed("loop"), self._lock:
                         close_loop(self.map, keyframe, loop, self.camera, config)
                         self.loops_closed += 1
                         self._keyframes_since_loop = 0

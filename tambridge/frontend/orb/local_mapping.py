@@ -41,27 +41,33 @@ FUSE_RADIUS_PX = 3.0  # ORB-SLAM's Fuse searches 3 px (times the octave scale) a
 FUSE_NEIGHBOURS = 10
 
 
-def fuse_points(
+def fuse_matches(
     slam_map: SlamMap, keyframe: Keyframe, point_ids: np.ndarray, camera: Camera, config: OrbFrontendConfig,
-    incoming_wins: bool = False,
-) -> tuple[list[int], list[int]]:
-    """Project ``point_ids`` into a keyframe and attach each to the keypoint it matches (ORB-SLAM's Fuse).
-
-    A matched keypoint without a point gains an observation; one that has another point yields a merge pair
-    ``(old, new)``: the point with fewer observations goes, unless ``incoming_wins`` (loop closing keeps the
-    loop side). Points the keyframe already sees are skipped. Returns the merge pairs for
-    :meth:`SlamMap.replace_points`.
-    """
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``point_ids`` project into a keyframe and match a keypoint (ORB-SLAM's Fuse, its search alone):
+    ``(keypoint indices (M,), point ids (M,))``. Points the keyframe already sees are skipped. Reads the map only."""
     candidates = np.setdiff1d(point_ids, keyframe.point_ids, assume_unique=False)
     if candidates.size == 0:
-        return [], []
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     grid = build_keypoint_grid(keyframe.features.keypoints_px, camera.width, camera.height)
     keypoints, ids, _ = match_map_points(slam_map, candidates, keyframe.camera_from_world, keyframe.features, grid,
                                          camera, config, FUSE_RADIUS_PX)
+    return keypoints, ids
+
+
+def attach_fused(
+    slam_map: SlamMap, keyframe: Keyframe, keypoints: np.ndarray, point_ids: np.ndarray, incoming_wins: bool = False,
+) -> tuple[list[int], list[int]]:
+    """Attach each matched point (:func:`fuse_matches`) to its keypoint: a keypoint without a point gains an
+    observation; one that has another point yields a merge pair ``(old, new)``: the point with fewer observations
+    goes, unless ``incoming_wins`` (loop closing keeps the loop side). Returns the merge pairs for
+    :meth:`SlamMap.replace_points`."""
+    if keypoints.size == 0:
+        return [], []
     current = keyframe.point_ids[keypoints]
     has_point = slam_map.points.good(current)
-    keyframe.point_ids[keypoints[~has_point]] = ids[~has_point]
-    old, new = current[has_point], ids[has_point]
+    keyframe.point_ids[keypoints[~has_point]] = point_ids[~has_point]
+    old, new = current[has_point], point_ids[has_point]
     if not incoming_wins:
         observations = slam_map.points.observations
         swap = observations[old] > observations[new]
@@ -70,27 +76,55 @@ def fuse_points(
     return list(old), list(new)
 
 
-def fuse_with_neighbours(slam_map: SlamMap, keyframe: Keyframe, camera: Camera, config: OrbFrontendConfig) -> None:
+def fuse_points(
+    slam_map: SlamMap, keyframe: Keyframe, point_ids: np.ndarray, camera: Camera, config: OrbFrontendConfig,
+    incoming_wins: bool = False,
+) -> tuple[list[int], list[int]]:
+    """Project ``point_ids`` into a keyframe and attach each to the keypoint it matches (ORB-SLAM's Fuse):
+    :func:`fuse_matches`, then :func:`attach_fused`."""
+    return attach_fused(slam_map, keyframe, *fuse_matches(slam_map, keyframe, point_ids, camera, config), incoming_wins)
+
+
+def fuse_with_neighbours(slam_map: SlamMap, keyframe: Keyframe, camera: Camera, config: OrbFrontendConfig,
+                         lock: AbstractContextManager = nullcontext()) -> None:
     """Fuse the new keyframe's points into its covisible keyframes and theirs into it (SearchInNeighbors),
-    so that points seen from several keyframes carry all those observations and duplicates merge."""
+    so that points seen from several keyframes carry all those observations and duplicates merge.
+
+    Only the changes to the map are made while holding ``lock``: the searches and the choice of descriptors only
+    read it, and the one thread that may change it otherwise (tracking, which holds the lock for each frame) does
+    not while a keyframe is being mapped, so tracking goes on meanwhile. The result is the same with or without
+    the lock: a neighbour's search reads nothing another neighbour's attachment changes.
+    """
     neighbours = [slam_map.keyframes[i] for i in keyframe.best_covisible(FUSE_NEIGHBOURS)]
     neighbours = [k for k in neighbours if k.segment == keyframe.segment]
     if not neighbours:
         if config.distinctive_descriptors:
-            slam_map.update_descriptors(slam_map.good_point_ids(keyframe))
+            _update_descriptors(slam_map, slam_map.good_point_ids(keyframe), lock)
         return
-    olds, news = fuse_points(slam_map, keyframe, slam_map.points_of(neighbours), camera, config)
+    into_keyframe = fuse_matches(slam_map, keyframe, slam_map.points_of(neighbours), camera, config)
+    with lock:
+        olds, news = attach_fused(slam_map, keyframe, *into_keyframe)
     own = slam_map.good_point_ids(keyframe)
-    for neighbour in neighbours:
-        o, n = fuse_points(slam_map, neighbour, own, camera, config)
-        olds += o
-        news += n
-    slam_map.replace_points(np.array(olds, np.int64), np.array(news, np.int64))
-    slam_map.recount_observations()
-    for k in [keyframe] + neighbours:
-        slam_map.update_covisibility(k, config.covisibility_min_shared)
+    into_neighbours = [fuse_matches(slam_map, neighbour, own, camera, config) for neighbour in neighbours]
+    with lock:
+        for neighbour, matched in zip(neighbours, into_neighbours):
+            o, n = attach_fused(slam_map, neighbour, *matched)
+            olds += o
+            news += n
+        slam_map.replace_points(np.array(olds, np.int64), np.array(news, np.int64))
+        slam_map.recount_observations()
+        for k in [keyframe] + neighbours:
+            slam_map.update_covisibility(k, config.covisibility_min_shared)
     if config.distinctive_descriptors:
-        slam_map.update_descriptors(slam_map.points_of([keyframe] + neighbours))
+        _update_descriptors(slam_map, slam_map.points_of([keyframe] + neighbours), lock)
+
+
+def _update_descriptors(slam_map: SlamMap, point_ids: np.ndarray, lock: AbstractContextManager) -> None:
+    """Give ``point_ids`` their :meth:`SlamMap.distinctive_descriptors`, chosen without ``lock`` and written with
+    it."""
+    ids, descriptors = slam_map.distinctive_descriptors(point_ids)
+    with lock:
+        slam_map.points.descriptors[ids] = descriptors
 
 
 def cull_recent_points(slam_map: SlamMap, keyframe: Keyframe) -> int:
@@ -208,40 +242,40 @@ def adjust_bundle(
     seeing those points joins as a fixed camera. Runs half the iterations, drops the outlier observations
     (chi2 beyond the 95% quantile) from their keyframes, then runs the rest. Returns the observations dropped.
 
-    The problem is built and the result written back while holding ``lock``; the solve runs without it, so
-    tracking can go on meanwhile.
+    Only the result is written back while holding ``lock``: the problem is built and solved without it, which
+    needs that no other thread changes the map meanwhile (tracking only reads it while a keyframe is mapped), so
+    tracking can go on.
     """
-    with lock:
-        points = slam_map.points
-        mask = np.zeros(points.count, bool)
-        mask[point_ids] = True
-        seen = slam_map.observers(mask)
-        variable_ids = {k.id for k in variable} - fixed_ids
-        cameras = sorted(seen)
-        if not variable_ids & set(cameras):
-            return 0
-        point_index = np.full(points.count, -1, np.int64)
-        point_index[point_ids] = np.arange(len(point_ids))
-        keyframes = [slam_map.keyframes[i] for i in cameras]
-        obs_camera = np.concatenate([np.full(len(seen[kf_id]), i) for i, kf_id in enumerate(cameras)])
-        obs_keypoint = np.concatenate([seen[kf_id] for kf_id in cameras])
-        obs_kf = np.array(cameras)[obs_camera]
-        keypoints = np.concatenate([k.features.keypoints_px[seen[k.id]] for k in keyframes])
-        depth = np.concatenate([k.features.depth_m[seen[k.id]] for k in keyframes])
-        octaves = np.concatenate([k.features.octaves[seen[k.id]] for k in keyframes])
-        obs_point_id = np.concatenate([k.point_ids[seen[k.id]] for k in keyframes])
-        problem = BundleProblem(
-            camera_from_world=np.stack([k.camera_from_world for k in keyframes]),
-            points_world=points.positions_m[point_ids].copy(),
-            observation_camera=obs_camera,
-            observation_point=point_index[obs_point_id],
-            observations=rgbd_observations(keypoints, depth),
-            inv_sigma2=_inv_sigma2(octaves, config.scale_factor),
-            fixed_cameras=np.array([kf_id not in variable_ids for kf_id in cameras]),
-            K=K,
-            depth_noise_per_m=config.depth_noise,
-            depth_pairs=depth_pairs(slam_map, cameras, variable_ids, K, config),
-        )
+    points = slam_map.points
+    mask = np.zeros(points.count, bool)
+    mask[point_ids] = True
+    seen = slam_map.observers(mask)
+    variable_ids = {k.id for k in variable} - fixed_ids
+    cameras = sorted(seen)
+    if not variable_ids & set(cameras):
+        return 0
+    point_index = np.full(points.count, -1, np.int64)
+    point_index[point_ids] = np.arange(len(point_ids))
+    keyframes = [slam_map.keyframes[i] for i in cameras]
+    obs_camera = np.concatenate([np.full(len(seen[kf_id]), i) for i, kf_id in enumerate(cameras)])
+    obs_keypoint = np.concatenate([seen[kf_id] for kf_id in cameras])
+    obs_kf = np.array(cameras)[obs_camera]
+    keypoints = np.concatenate([k.features.keypoints_px[seen[k.id]] for k in keyframes])
+    depth = np.concatenate([k.features.depth_m[seen[k.id]] for k in keyframes])
+    octaves = np.concatenate([k.features.octaves[seen[k.id]] for k in keyframes])
+    obs_point_id = np.concatenate([k.point_ids[seen[k.id]] for k in keyframes])
+    problem = BundleProblem(
+        camera_from_world=np.stack([k.camera_from_world for k in keyframes]),
+        points_world=points.positions_m[point_ids].copy(),
+        observation_camera=obs_camera,
+        observation_point=point_index[obs_point_id],
+        observations=rgbd_observations(keypoints, depth),
+        inv_sigma2=_inv_sigma2(octaves, config.scale_factor),
+        fixed_cameras=np.array([kf_id not in variable_ids for kf_id in cameras]),
+        K=K,
+        depth_noise_per_m=config.depth_noise,
+        depth_pairs=depth_pairs(slam_map, cameras, variable_ids, K, config),
+    )
     options = BundleOptions(iterations=max(1, iterations // 2))
     solution = solve_bundle_adjustment(problem, options)
     outliers = solution.outliers
@@ -271,12 +305,12 @@ def adjust_bundle(
 def local_bundle_adjustment(
     slam_map: SlamMap, keyframe: Keyframe, K: np.ndarray, config: OrbFrontendConfig, lock: AbstractContextManager = nullcontext()
 ) -> int:
-    """Local BA: the new keyframe and its best covisible keyframes move; the first keyframe of a segment stays."""
-    with lock:
-        local = [keyframe] + [slam_map.keyframes[i] for i in keyframe.best_covisible(config.local_ba_keyframes - 1)]
-        local = [k for k in local if k.segment == keyframe.segment]
-        fixed = {k.id for k in local if k.id == _segment_start(slam_map, k.segment)}
-        point_ids = slam_map.points_of(local)
+    """Local BA: the new keyframe and its best covisible keyframes move; the first keyframe of a segment stays.
+    ``lock`` is held for the changes to the map alone, as in :func:`adjust_bundle`."""
+    local = [keyframe] + [slam_map.keyframes[i] for i in keyframe.best_covisible(config.local_ba_keyframes - 1)]
+    local = [k for k in local if k.segment == keyframe.segment]
+    fixed = {k.id for k in local if k.id == _segment_start(slam_map, k.segment)}
+    point_ids = slam_map.points_of(local)
     dropped = adjust_bundle(slam_map, local, point_ids, fixed, K, config, config.local_ba_iterations, lock)
     with lock:
         for k in local:

@@ -172,21 +172,21 @@ class SlamMap:
                 out[keyframe.id] = np.flatnonzero(hit)
         return out
 
-    def update_descriptors(self, point_ids: np.ndarray) -> None:
-        """Give each of ``point_ids`` (K,) the most distinctive descriptor among its observations (ORB-SLAM's
-        ComputeDistinctiveDescriptors), so that matching compares against a typical view, not the first one."""
+    def distinctive_descriptors(self, point_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The most distinctive descriptor among each point's observations (ORB-SLAM's
+        ComputeDistinctiveDescriptors), so that matching compares against a typical view, not the first one:
+        ``(ids (J,), descriptors (J, 32))`` for the good ones of ``point_ids`` (K,) that a keyframe observes."""
         mask = np.zeros(self.points.count, bool)
         mask[point_ids[self.points.good(point_ids)]] = True
         seen = self.observers(mask)
         if not seen:
-            return
+            return np.zeros(0, np.int64), np.zeros((0, self.points.descriptors.shape[1]), self.points.descriptors.dtype)
         observed = np.concatenate([self.keyframes[k].point_ids[i] for k, i in seen.items()])
         descriptors = np.concatenate([self.keyframes[k].features.descriptors[i] for k, i in seen.items()])
         order = np.argsort(observed, kind="stable")
         observed, descriptors = observed[order], descriptors[order]
         ids, group_start = np.unique(observed, return_index=True)
-        chosen = distinctive_indices(descriptors, np.append(group_start, len(observed)))
-        self.points.descriptors[ids] = descriptors[chosen]
+        return ids, descriptors[distinctive_indices(descriptors, np.append(group_start, len(observed)))]
 
     def update_covisibility(self, keyframe: Keyframe, min_shared: int) -> None:
         """Recount the points this keyframe shares with every other keyframe; keep pairs with >= ``min_shared``
