@@ -15,7 +15,13 @@ from tambridge.frontend.orb.matching import (
     search_by_projection,
     search_by_projection_reference,
 )
-from tambridge.frontend.orb.features import bucket_keypoints, level_budgets, lift_keypoints
+from tambridge.frontend.orb.features import (
+    bucket_keypoints,
+    keypoint_depths,
+    keypoint_depths_reference,
+    level_budgets,
+    lift_keypoints,
+)
 from tambridge.frontend.orb.pose_estimation import (
     pose_normal_equations,
     pose_normal_equations_reference,
@@ -141,6 +147,26 @@ def test_lift_keypoints_back_projects_with_depth():
     np.testing.assert_allclose(features.points_camera_m[0], [0.0, 0.0, 2.0])
     np.testing.assert_allclose(features.points_camera_m[1], [(310 - 160) / 300 * 2, (20 - 120) / 300 * 2, 2.0])
     assert features.depth_m[2] == 0.0 and not features.has_depth[2]
+
+
+@pytest.mark.parametrize("window, ratio", [(0, np.inf), (1, 0.05), (2, 0.02)])
+def test_keypoint_depths_kernel_matches_its_twin(window, ratio):
+    """Steps, holes, NaN, values outside the range and pixels on the border, where the window is clipped."""
+    rng = np.random.default_rng(11)
+    depth = (2.0 * (1.0 + rng.normal(0.0, 0.002, (60, 80)))).astype(np.float32)
+    depth[:, 40:] += np.float32(0.8)  # a depth edge down the middle
+    depth[rng.random(depth.shape) < 0.05] = 0.0
+    depth[rng.random(depth.shape) < 0.01] = np.nan
+    depth[rng.random(depth.shape) < 0.02] = 9.5
+    smooth = np.full((60, 80), 2.0, np.float32) + np.linspace(0, 0.01, 80, dtype=np.float32)
+    rows = np.concatenate([rng.integers(0, 60, 400), [0, 59, 0, 59]])
+    columns = np.concatenate([rng.integers(0, 80, 400), [0, 79, 79, 0]])
+    for image in (depth, smooth):
+        fast = keypoint_depths(image, rows, columns, 0.3, 8.0, window, ratio)
+        slow = keypoint_depths_reference(image, rows, columns, 0.3, 8.0, window, ratio)
+        np.testing.assert_array_equal(fast, slow)
+    assert 0 < np.count_nonzero(keypoint_depths(depth, rows, columns, 0.3, 8.0, window, ratio)) < len(rows)
+    assert np.count_nonzero(keypoint_depths(smooth, rows, columns, 0.3, 8.0, window, ratio)) == len(rows)
 
 
 def _scene(rng, n=300, outliers=0):

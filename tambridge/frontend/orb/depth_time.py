@@ -31,14 +31,19 @@ def colour_from_depth_motion(current_from_previous: np.ndarray, frame_interval_s
 @numba.njit(cache=True, nogil=True)
 def _depth_at_colour_time_kernel(depth_m, rotation, translation, fx, fy, cx, cy):
     height, width = depth_m.shape
+    # Each column's and row's ray once (pinhole_ray's arithmetic), not two divisions a pixel twice over.
+    ray_x, ray_y = np.empty(width), np.empty(height)
+    for column in range(width):
+        ray_x[column] = pinhole_ray_numba(float(column), 0.0, fx, fy, cx, cy)[0]
+    for row in range(height):
+        ray_y[row] = pinhole_ray_numba(0.0, float(row), fx, fy, cx, cy)[1]
     out = np.zeros((height, width), np.float32)
     for row in range(height):
         for column in range(width):
             z = depth_m[row, column]
             if not z > 0:
                 continue
-            x, y = pinhole_ray_numba(float(column), float(row), fx, fy, cx, cy)
-            px, py = x * z, y * z
+            px, py = ray_x[column] * z, ray_y[row] * z
             moved_x = rotation[0, 0] * px + rotation[0, 1] * py + rotation[0, 2] * z + translation[0]
             moved_y = rotation[1, 0] * px + rotation[1, 1] * py + rotation[1, 2] * z + translation[1]
             moved_z = rotation[2, 0] * px + rotation[2, 1] * py + rotation[2, 2] * z + translation[2]
@@ -52,9 +57,8 @@ def _depth_at_colour_time_kernel(depth_m, rotation, translation, fx, fy, cx, cy)
             source_z = depth_m[source_row, source_column]
             if not source_z > 0:
                 continue
-            x, y = pinhole_ray_numba(float(source_column), float(source_row), fx, fy, cx, cy)
-            out[row, column] = (rotation[2, 0] * x * source_z + rotation[2, 1] * y * source_z + rotation[2, 2] * source_z
-                                + translation[2])
+            out[row, column] = (rotation[2, 0] * ray_x[source_column] * source_z
+                                + rotation[2, 1] * ray_y[source_row] * source_z + rotation[2, 2] * source_z + translation[2])
     return out
 
 

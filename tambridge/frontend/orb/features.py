@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 
 import cv2
+import numba
 import numpy as np
 
 from tambridge.camera import Camera
@@ -168,22 +169,63 @@ def lift_keypoints(
     edge_window_px: int = 0,
     edge_ratio: float = np.inf,
 ) -> FrameFeatures:
-    """Attach depth, colour and camera-frame 3D points to keypoints (N, 2).
-
-    Depth is the nearest pixel's; it counts as none outside [min, max], and (with ``edge_window_px`` > 0) where
-    the depth in the ``2 * edge_window_px + 1`` square around the keypoint has a hole or spans more than
-    ``edge_ratio`` times the depth: corners often sit on depth edges, where a pixel of colour-depth
-    misregistration puts the point on the wrong surface.
-    """
+    """Attach depth, colour and camera-frame 3D points to keypoints (N, 2), their depth as
+    :func:`keypoint_depths` gives it."""
     columns = np.clip(np.round(keypoints_px[:, 0]).astype(np.int64), 0, camera.width - 1)
     rows = np.clip(np.round(keypoints_px[:, 1]).astype(np.int64), 0, camera.height - 1)
+    depth = keypoint_depths(depth_m, rows, columns, min_depth_m, max_depth_m, edge_window_px, edge_ratio)
+    points = camera.backproject(keypoints_px, depth)
+    return FrameFeatures(keypoints_px, octaves, np.ascontiguousarray(descriptors), depth, points, rgb[rows, columns].copy())
+
+
+def keypoint_depths(depth_m: np.ndarray, rows: np.ndarray, columns: np.ndarray, min_depth_m: float, max_depth_m: float,
+                    edge_window_px: int = 0, edge_ratio: float = np.inf) -> np.ndarray:
+    """Depth (N,) float64 metres of the pixels ``(rows, columns)`` (N,) of ``depth_m`` (H, W), 0 for none.
+
+    It counts as none outside [min, max], and (with ``edge_window_px`` > 0) where the depth in the
+    ``2 * edge_window_px + 1`` square around the pixel (clipped to the image) has a hole or spans more than
+    ``edge_ratio`` times the depth: corners often sit on depth edges, where a pixel of colour-depth
+    misregistration puts the point on the wrong surface. A numba kernel (it runs three times a tracked frame);
+    :func:`keypoint_depths_reference` is its slow twin.
+    """
+    return _keypoint_depths_kernel(np.ascontiguousarray(depth_m), np.ascontiguousarray(rows, np.int64),
+                                   np.ascontiguousarray(columns, np.int64), float(min_depth_m), float(max_depth_m),
+                                   int(edge_window_px), float(edge_ratio))
+
+
+@numba.njit(cache=True, nogil=True)
+def _keypoint_depths_kernel(depth_m, rows, columns, min_depth_m, max_depth_m, window, ratio):
+    height, width = depth_m.shape
+    out = np.zeros(rows.shape[0])
+    for i in range(rows.shape[0]):
+        depth = np.float64(depth_m[rows[i], columns[i]])
+        if not (np.isfinite(depth) and min_depth_m <= depth <= max_depth_m):
+            continue
+        if window > 0:
+            lowest = highest = depth_m[rows[i], columns[i]]
+            hole = False
+            for row_offset in range(-window, window + 1):
+                row = min(max(rows[i] + row_offset, 0), height - 1)
+                for column_offset in range(-window, window + 1):
+                    value = depth_m[row, min(max(columns[i] + column_offset, 0), width - 1)]
+                    hole |= not value > 0
+                    lowest, highest = min(lowest, value), max(highest, value)
+            if hole or not highest - lowest <= ratio * depth:
+                continue
+        out[i] = depth
+    return out
+
+
+def keypoint_depths_reference(depth_m: np.ndarray, rows: np.ndarray, columns: np.ndarray, min_depth_m: float,
+                              max_depth_m: float, edge_window_px: int = 0, edge_ratio: float = np.inf) -> np.ndarray:
+    """Slow twin of :func:`keypoint_depths`, on whole arrays."""
+    height, width = depth_m.shape
     depth = depth_m[rows, columns].astype(np.float64)
     depth[~np.isfinite(depth) | (depth < min_depth_m) | (depth > max_depth_m)] = 0.0
     if edge_window_px > 0:
         offsets = np.arange(-edge_window_px, edge_window_px + 1)
-        patch = depth_m[np.clip(rows[:, None, None] + offsets[None, :, None], 0, camera.height - 1),
-                        np.clip(columns[:, None, None] + offsets[None, None, :], 0, camera.width - 1)].reshape(len(depth), -1)
+        patch = depth_m[np.clip(rows[:, None, None] + offsets[None, :, None], 0, height - 1),
+                        np.clip(columns[:, None, None] + offsets[None, None, :], 0, width - 1)].reshape(len(depth), -1)
         span = patch.max(axis=1) - patch.min(axis=1)
-        depth[(patch.min(axis=1) <= 0) | ~(span <= edge_ratio * depth)] = 0.0
-    points = camera.backproject(keypoints_px, depth)
-    return FrameFeatures(keypoints_px, octaves, np.ascontiguousarray(descriptors), depth, points, rgb[rows, columns].copy())
+        depth[~(patch > 0).all(axis=1) | ~(span <= edge_ratio * depth)] = 0.0
+    return depth
