@@ -31,10 +31,12 @@ background thread, as ORB-SLAM's local-mapping and loop-closing threads do, whil
 next frames. Keyframes are chosen by the same rules as without the thread; when one is due while the thread
 still maps the previous one, tracking waits for it (ORB-SLAM, fed frames in real time, would skip the keyframe
 instead, but frames here come as fast as tracking takes them: under CPU load, skipping starved the map of
-keyframes and lost tracking). One lock guards the map:
-tracking holds it while it reads the local map, the mapping thread while it edits the map or reads BA inputs,
-not while it solves. Frame poses are kept relative to their reference keyframe, so corrections made in the
-background carry over to tracking. A frame that fails against the local map while the thread still holds
+keyframes and lost tracking). The frame after a keyframe waits until that keyframe's points are fused with its
+neighbours', so that it tracks against the map an inline run would (the share of the reference keyframe's points
+that are seen twice decides the next keyframe). One lock guards the map: tracking holds it for each frame, and
+only reads the map while the thread has keyframes (it waits for the thread before it adds one); the mapping thread
+reads the map without it and holds it while it changes the map. Frame poses are kept relative to their reference
+keyframe, so corrections made in the background carry over to tracking. A frame that fails against the local map while the thread still holds
 keyframes waits for it and tries again, before relocalisation. Without the thread everything runs inside ``track``
 and results are deterministic. ``timings_s`` sums wall time per stage over both threads.
 """
@@ -153,6 +155,8 @@ class OrbFrontend:
         self._timing_lock = threading.Lock()
         self._jobs: queue.Queue[Keyframe | None] = queue.Queue()
         self._mapping_idle = threading.Condition(self._lock)
+        self._keyframe_fused = threading.Event()
+        self._keyframe_fused.set()
         self._worker: threading.Thread | None = None
         self._worker_error: BaseException | None = None
 
@@ -190,6 +194,7 @@ class OrbFrontend:
         self._raise_worker_error()
         if features is None:
             features = self.extract(frame)
+        self._keyframe_fused.wait()
         with self._lock:
             self._dense_term_this_frame = False
             result = self._track_features(frame, features)
@@ -685,6 +690,7 @@ class OrbFrontend:
             self._map_keyframe(keyframe, run_mapping)
         elif run_mapping:
             self._start_worker()
+            self._keyframe_fused.clear()
             self._jobs.put(keyframe)
         else:
             self._map_keyframe(keyframe, run_mapping=False)
@@ -705,6 +711,7 @@ class OrbFrontend:
                 cull_recent_points(self.map, keyframe)
             with self._timed("matching"):
                 fuse_with_neighbours(self.map, keyframe, self.camera, config, self._lock)
+            self._keyframe_fused.set()
             with self._timed("local_ba"):
                 local_bundle_adjustment(self.map, keyframe, self.K, config, self._lock)
             if config.keyframe_culling:
@@ -742,6 +749,7 @@ class OrbFrontend:
             except BaseException as error:  # noqa: BLE001 - re-raised in the caller's thread by _raise_worker_error
                 self._worker_error = error
             finally:
+                self._keyframe_fused.set()  # also where the keyframe failed: the next frame raises its error
                 self._jobs.task_done()
                 with self._mapping_idle:
                     self._mapping_idle.notify_all()
@@ -848,7 +856,7 @@ class OrbFrontend:
         )
 
     # ------------------------------------------------------------------ checkpoints
-    _TRANSIENT = ("camera", "config", "K", "extractor", "vocabulary", "_lock", "_timing_lock", "_mapping_idle", "_jobs",
+    _TRANSIENT = ("camera", "config", "K", "extractor", "vocabulary", "_lock", "_timing_lock", "_mapping_idle", "_keyframe_fused", "_jobs",
                   "_worker", "_worker_error")
     """Attributes a checkpoint leaves out: given to or rebuilt by the constructor, or threads and locks."""
 
