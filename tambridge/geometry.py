@@ -124,12 +124,18 @@ def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     return points_b @ a_from_b[:3, :3].T + a_from_b[:3, 3]
 
 
-def pose_from_tum(position_m: np.ndarray, quaternion_xyzw: np.ndarray) -> np.ndarray:
-    """4x4 ``world_from_camera`` from a TUM line's ``tx ty tz`` and ``qx qy qz qw``."""
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_quat(quaternion_xyzw).as_matrix()
-    out[:3, 3] = position_m
+def poses_from_tum(positions_m: np.ndarray, quaternions_xyzw: np.ndarray) -> np.ndarray:
+    """4x4 ``world_from_camera`` (..., 4, 4) from TUM lines' ``tx ty tz`` (..., 3) and ``qx qy qz qw`` (..., 4)."""
+    positions_m, quaternions_xyzw = np.asarray(positions_m, np.float64), np.asarray(quaternions_xyzw, np.float64)
+    out = np.broadcast_to(np.eye(4), positions_m.shape[:-1] + (4, 4)).copy()
+    out[..., :3, :3] = Rotation.from_quat(quaternions_xyzw.reshape(-1, 4)).as_matrix().reshape(positions_m.shape[:-1] + (3, 3))
+    out[..., :3, 3] = positions_m
     return out
+
+
+def pose_from_tum(position_m: np.ndarray, quaternion_xyzw: np.ndarray) -> np.ndarray:
+    """4x4 ``world_from_camera`` from a TUM line's ``tx ty tz`` and ``qx qy qz qw`` (:func:`poses_from_tum` of one)."""
+    return poses_from_tum(position_m, quaternion_xyzw)
 
 
 def tum_from_pose(world_from_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

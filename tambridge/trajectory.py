@@ -9,7 +9,7 @@ import numpy as np
 
 from tambridge.errors import TrajectoryFormatError
 from tambridge.files import atomic_write_text, read_text_file
-from tambridge.geometry import pose_from_tum, poses_along, tum_from_pose
+from tambridge.geometry import poses_along, poses_from_tum, tum_from_pose
 
 QUATERNION_NORM_TOLERANCE = 0.01
 """How far from 1 a file's quaternion norm may lie: rounding to TUM's 4 decimals moves it by about 2e-4; further off,
@@ -115,8 +115,9 @@ def parse_tum_trajectory(text: str, source: str) -> Trajectory:
                                         "with another pose; list each time once")
     keep = np.ones(len(timestamps), bool)
     keep[repeated] = False
-    poses = [pose_from_tum(values[1:4], values[4:8] / np.linalg.norm(values[4:8])) for values in values_of_lines[keep]]
-    return Trajectory(timestamps[keep], np.stack(poses))
+    kept = values_of_lines[keep]
+    quaternions = kept[:, 4:8] / np.linalg.norm(kept[:, 4:8], axis=1, keepdims=True)
+    return Trajectory(timestamps[keep], poses_from_tum(kept[:, 1:4], quaternions))
 
 
 def _is_number(text: str) -> bool:

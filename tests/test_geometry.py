@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from tambridge.geometry import (exp_se3, exp_se3_numba, exp_se3_torch, inverse, log_se3, look_at, pose_from_tum,
-                                rotation_angle_deg, rotation_angles_deg, tum_from_pose)
+                                poses_from_tum, rotation_angle_deg, rotation_angles_deg, tum_from_pose)
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 0.3, 3.0])
@@ -60,6 +60,14 @@ def test_inverse_and_tum_round_trip():
     position, quaternion = tum_from_pose(transform)
     assert quaternion[3] >= 0
     np.testing.assert_allclose(pose_from_tum(position, quaternion), transform, atol=1e-12)
+
+
+def test_poses_from_tum_converts_a_stack_as_one_at_a_time():
+    transforms = np.stack([exp_se3(np.random.default_rng(i).normal(0.0, 1.0, 6)) for i in range(5)])
+    positions, quaternions = zip(*(tum_from_pose(t) for t in transforms))
+    stacked = poses_from_tum(np.reshape(positions, (5, 1, 3)), np.reshape(quaternions, (5, 1, 4)))
+    assert stacked.shape == (5, 1, 4, 4)
+    np.testing.assert_allclose(stacked[:, 0], transforms, atol=1e-12)
 
 
 def test_look_at_points_the_optical_axis_at_the_target():
