@@ -28,7 +28,7 @@ class FrontendConfig:
     kind: FrontendKind = setting(FrontendKind.orb, "tracking frontend: orb (ORB-SLAM2 style), open3d (keyframes + pose "
                                                    "graph) or open3d_f2f (frame-to-frame odometry)")
     # Same results either way; it pays only where a core is free for the two workers (they share the GIL).
-    prefetch: bool = setting(True, "read frame i+2 and extract frame i+1's ORB features in two worker threads while "
+    prefetch: bool = setting(True, "read the next frames and extract their ORB features in two worker threads while "
                                    "frame i is tracked")
     orb: OrbFrontendConfig = section(OrbFrontendConfig, "settings of the ORB frontend")
     open3d: Open3dFrontendConfig = section(Open3dFrontendConfig, "settings of both Open3D frontends")

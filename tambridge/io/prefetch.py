@@ -1,8 +1,9 @@
 """Read (and prepare) the next frame of a sequence in a worker thread while the caller works on the current one.
 
 Decoding the images of a 640x480 frame (and resampling unregistered colour) and extracting its ORB features take
-about as long as tracking it, and run mostly in cv2 and numba, which release the GIL: reading two frames ahead in
-one worker thread and preparing them in another, they overlap tracking where a core is free. Frames come
+about as long as tracking it, and run mostly in cv2 and numba, which release the GIL: reading
+:data:`FRAMES_AHEAD` frames ahead in one worker thread and preparing them in another, they overlap tracking where a
+core is free. Frames come
 out in order and each one exactly as ``sequence[index]`` gives it, so results do not change; an error reading or
 preparing a frame is raised when the caller reaches that frame. The reader also scores each frame's sharpness
 (:func:`tambridge.images.sharpness`, on a thumbnail) for the Fusion Bridge's view selection.
@@ -77,9 +78,16 @@ class ReadAhead(Generic[Item, Read]):
         self.close()
 
 
+FRAMES_AHEAD = 5
+"""Frames :class:`FramePrefetcher` reads and prepares ahead of the one being tracked. Tracking slows at each keyframe
+(it waits for the keyframe's fusion) and the two workers fall behind while the mapping thread takes a core; frames
+read ahead (a few MB each) carry tracking over those bursts without waiting (docs/benchmarks.md)."""
+
+
 class FramePrefetcher(Generic[Prepared]):
-    """Iterate ``(frame, prepare(frame))`` over frames ``start..len(sequence)-1`` (:class:`ReadAhead` two frames
-    ahead: while the caller has frame i, frames i+1 and i+2 are read in one worker thread and prepared in another);
+    """Iterate ``(frame, prepare(frame))`` over frames ``start..len(sequence)-1`` (:class:`ReadAhead`
+    :data:`FRAMES_AHEAD` frames ahead: while the caller has frame i, the next ones are read in one worker thread and
+    prepared in another);
     ``prepare=None`` only reads ahead (the second item is None, and there is no preparer thread);
     ``read_ahead=False`` reads and prepares each frame in the caller's thread when it is asked for. A context
     manager as :class:`ReadAhead`. ``sharpness[i]`` holds frame i's :func:`tambridge.images.sharpness` once the
@@ -91,7 +99,7 @@ class FramePrefetcher(Generic[Prepared]):
         self.sequence = sequence
         self.prepare = prepare
         self.sharpness: dict[int, float] = {}
-        self._frames = ReadAhead(range(start, len(sequence)), self._read, 2 if read_ahead else 0,
+        self._frames = ReadAhead(range(start, len(sequence)), self._read, FRAMES_AHEAD if read_ahead else 0,
                                  None if prepare is None else self._prepared)
 
     def _read(self, index: int) -> Frame:
