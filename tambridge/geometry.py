@@ -133,11 +133,6 @@ def poses_from_tum(positions_m: np.ndarray, quaternions_xyzw: np.ndarray) -> np.
     return out
 
 
-def pose_from_tum(position_m: np.ndarray, quaternion_xyzw: np.ndarray) -> np.ndarray:
-    """4x4 ``world_from_camera`` from a TUM line's ``tx ty tz`` and ``qx qy qz qw`` (:func:`poses_from_tum` of one)."""
-    return poses_from_tum(position_m, quaternion_xyzw)
-
-
 def tum_from_pose(world_from_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(position_m (3,), quaternion_xyzw (4,) with qw >= 0)`` of a 4x4 pose."""
     quaternion = Rotation.from_matrix(world_from_camera[:3, :3]).as_quat()

@@ -159,12 +159,20 @@ def test_keypoint_depths_kernel_matches_its_twin(window, ratio):
     depth[rng.random(depth.shape) < 0.01] = np.nan
     depth[rng.random(depth.shape) < 0.02] = 9.5
     smooth = np.full((60, 80), 2.0, np.float32) + np.linspace(0, 0.01, 80, dtype=np.float32)
+    bounds = np.full((60, 80), 8.0)  # float64, at the range's ends: the bounds are inside it
+    bounds[:, :40] = 0.3
     rows = np.concatenate([rng.integers(0, 60, 400), [0, 59, 0, 59]])
     columns = np.concatenate([rng.integers(0, 80, 400), [0, 79, 79, 0]])
-    for image in (depth, smooth):
+    for image in (depth, smooth, bounds):
         fast = keypoint_depths(image, rows, columns, 0.3, 8.0, window, ratio)
         slow = keypoint_depths_reference(image, rows, columns, 0.3, 8.0, window, ratio)
         np.testing.assert_array_equal(fast, slow)
+    at_bounds = keypoint_depths(bounds, rows, columns, 0.3, 8.0, window, ratio)
+    np.testing.assert_array_equal(at_bounds[columns < 40 - window], 0.3)
+    np.testing.assert_array_equal(at_bounds[columns >= 40 + window], 8.0)
+    none = np.zeros(0, np.int64)
+    assert keypoint_depths(depth, none, none, 0.3, 8.0, window, ratio).shape == (0,)
+    assert keypoint_depths_reference(depth, none, none, 0.3, 8.0, window, ratio).shape == (0,)
     assert 0 < np.count_nonzero(keypoint_depths(depth, rows, columns, 0.3, 8.0, window, ratio)) < len(rows)
     assert np.count_nonzero(keypoint_depths(smooth, rows, columns, 0.3, 8.0, window, ratio)) == len(rows)
 

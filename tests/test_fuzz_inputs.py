@@ -16,7 +16,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from tambridge.errors import SequenceFormatError, TrajectoryFormatError
-from tambridge.geometry import pose_from_tum
+from tambridge.geometry import poses_from_tum
 from tambridge.io.tum import MAX_FRAME_INTERVAL_S, associate, open_sequence
 from tambridge.trajectory import QUATERNION_NORM_TOLERANCE, parse_tum_trajectory
 
@@ -217,7 +217,7 @@ def test_trajectory_text_gives_the_sorted_poses_or_an_error_naming_file_and_line
     np.testing.assert_array_equal(trajectory.timestamps_s, stamps)
     for pose, stamp in zip(trajectory.world_from_camera, stamps):
         quaternion = kept[stamp][4:] / np.abs(kept[stamp][4:]).max()
-        np.testing.assert_allclose(pose, pose_from_tum(kept[stamp][1:4], quaternion / np.linalg.norm(quaternion)),
+        np.testing.assert_allclose(pose, poses_from_tum(kept[stamp][1:4], quaternion / np.linalg.norm(quaternion)),
                                    atol=1e-9)
         np.testing.assert_allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-9)
 

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from tambridge.geometry import (exp_se3, exp_se3_numba, exp_se3_torch, inverse, log_se3, look_at, pose_from_tum,
-                                poses_from_tum, rotation_angle_deg, rotation_angles_deg, tum_from_pose)
+from tambridge.geometry import (exp_se3, exp_se3_numba, exp_se3_torch, inverse, log_se3, look_at, poses_from_tum,
+                                rotation_angle_deg, rotation_angles_deg, tum_from_pose)
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 0.3, 3.0])
@@ -59,7 +59,7 @@ def test_inverse_and_tum_round_trip():
     np.testing.assert_allclose(inverse(transform) @ transform, np.eye(4), atol=1e-12)
     position, quaternion = tum_from_pose(transform)
     assert quaternion[3] >= 0
-    np.testing.assert_allclose(pose_from_tum(position, quaternion), transform, atol=1e-12)
+    np.testing.assert_allclose(poses_from_tum(position, quaternion), transform, atol=1e-12)
 
 
 def test_poses_from_tum_converts_a_stack_as_one_at_a_time():

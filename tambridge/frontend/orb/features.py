@@ -225,7 +225,7 @@ def keypoint_depths_reference(depth_m: np.ndarray, rows: np.ndarray, columns: np
     if edge_window_px > 0:
         offsets = np.arange(-edge_window_px, edge_window_px + 1)
         patch = depth_m[np.clip(rows[:, None, None] + offsets[None, :, None], 0, height - 1),
-                        np.clip(columns[:, None, None] + offsets[None, None, :], 0, width - 1)].reshape(len(depth), -1)
+                        np.clip(columns[:, None, None] + offsets[None, None, :], 0, width - 1)].reshape(len(depth), offsets.size ** 2)
         span = patch.max(axis=1) - patch.min(axis=1)
         depth[~(patch > 0).all(axis=1) | ~(span <= edge_ratio * depth)] = 0.0
     return depth

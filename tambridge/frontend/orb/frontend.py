@@ -32,10 +32,11 @@ next frames. Keyframes are chosen by the same rules as without the thread; when 
 still maps the previous one, tracking waits for it (ORB-SLAM, fed frames in real time, would skip the keyframe
 instead, but frames here come as fast as tracking takes them: under CPU load, skipping starved the map of
 keyframes and lost tracking). The frame after a keyframe waits until that keyframe's points are fused with its
-neighbours', so that it tracks against the map an inline run would (the share of the reference keyframe's points
-that are seen twice decides the next keyframe). One lock guards the map: tracking holds it for each frame, and
-only reads the map while the thread has keyframes (it waits for the thread before it adds one); the mapping thread
-reads the map without it and holds it while it changes the map. Frame poses are kept relative to their reference
+neighbours' (local BA may still be running), as inline it would track against the fused map: the share of the
+reference keyframe's points seen twice decides the next keyframe. One lock guards the map: tracking holds it for
+each frame, and while the thread has keyframes it changes nothing in the map but the points' visible / found
+counters (it waits for the thread before it adds a keyframe); the mapping thread reads the map without the lock,
+except those counters, and holds it while it changes the map. Frame poses are kept relative to their reference
 keyframe, so corrections made in the background carry over to tracking. A frame that fails against the local map while the thread still holds
 keyframes waits for it and tries again, before relocalisation. Without the thread everything runs inside ``track``
 and results are deterministic. ``timings_s`` sums wall time per stage over both threads.
@@ -191,10 +192,10 @@ class OrbFrontend:
 
         ``features``: the frame's :meth:`extract`, computed ahead (the same result); None extracts them here.
         """
-        self._raise_worker_error()
         if features is None:
             features = self.extract(frame)
         self._keyframe_fused.wait()
+        self._raise_worker_error()  # after the wait: a fusion that failed is raised by the frame that waited for it
         with self._lock:
             self._dense_term_this_frame = False
             result = self._track_features(frame, features)
@@ -704,9 +705,10 @@ class OrbFrontend:
         with self._lock:
             keyframe.bow_words, keyframe.bow_weights = words, weights
         if run_mapping:
-            # Tracking, the one other thread, holds the lock for each frame and only reads the map while keyframes
-            # are mapped (it waits for this thread before it adds one): so this thread reads the map without the
-            # lock and takes it for its changes alone, and tracking goes on meanwhile.
+            # Tracking, the one other thread, holds the lock for each frame and, while keyframes are mapped, changes
+            # only the points' visible / found counters (it waits for this thread before it adds a keyframe): so
+            # this thread reads the map without the lock, those counters apart (culling reads them), and takes it
+            # for its changes, and tracking goes on meanwhile.
             with self._lock:
                 cull_recent_points(self.map, keyframe)
             with self._timed("matching"):

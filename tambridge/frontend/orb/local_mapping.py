@@ -91,8 +91,8 @@ def fuse_with_neighbours(slam_map: SlamMap, keyframe: Keyframe, camera: Camera, 
     so that points seen from several keyframes carry all those observations and duplicates merge.
 
     Only the changes to the map are made while holding ``lock``: the searches and the choice of descriptors only
-    read it, and the one thread that may change it otherwise (tracking, which holds the lock for each frame) does
-    not while a keyframe is being mapped, so tracking goes on meanwhile. The result is the same with or without
+    read it, and read nothing that the one other thread (tracking, which holds the lock for each frame) changes
+    while a keyframe is being mapped (the points' visible / found counters), so tracking goes on meanwhile. The result is the same with or without
     the lock: a neighbour's search reads nothing another neighbour's attachment changes.
     """
     neighbours = [slam_map.keyframes[i] for i in keyframe.best_covisible(FUSE_NEIGHBOURS)]
@@ -243,8 +243,8 @@ def adjust_bundle(
     (chi2 beyond the 95% quantile) from their keyframes, then runs the rest. Returns the observations dropped.
 
     Only the result is written back while holding ``lock``: the problem is built and solved without it, which
-    needs that no other thread changes the map meanwhile (tracking only reads it while a keyframe is mapped), so
-    tracking can go on.
+    needs that no other thread changes what it reads meanwhile (tracking changes only the points' visible / found
+    counters while a keyframe is mapped), so tracking can go on.
     """
     points = slam_map.points
     mask = np.zeros(points.count, bool)
