@@ -286,11 +286,12 @@ def track_frames(
 
     After each frame ``counters`` count it, the mapping stage may ask the frontend for a keyframe where its map lacks
     coverage, ``live_view`` shows it and ``checkpoints`` are told of it (once it is mapped).
-    ``prefetch``: the next frames (:data:`~tambridge.io.prefetch.FRAMES_AHEAD`) are read in one worker thread and
-    their ``frontend.extract`` (where the frontend has one) made in another while frame i is tracked (:class:`FramePrefetcher`), with the results of reading and
-    tracking one frame after the other. Stage "frame_reading" is the time spent waiting for the next frame (reading
-    it, or with ``prefetch`` what its reading and extraction did not hide behind tracking); "tracking" is the rest of
-    the frontend's time; mapping a keyframe is not tracking.
+    ``prefetch``: the next frames (:data:`~tambridge.io.prefetch.FRAMES_AHEAD`) are read in one worker thread and their
+    ``frontend.extract`` (where the frontend has one) made in another while frame i is tracked
+    (:class:`FramePrefetcher`), with the results of reading and tracking one frame after the other. Stage
+    "frame_reading" is the time spent waiting for the next frame (reading it, or with ``prefetch`` what its reading and
+    extraction did not hide behind tracking); "tracking" is the rest of the frontend's time; mapping a keyframe is not
+    tracking.
     """
     with FramePrefetcher(sequence, start_frame, frontend.extract if prefetch else None, read_ahead=prefetch) as prefetcher, \
             stops.deferred() if stops is not None else contextlib.nullcontext():

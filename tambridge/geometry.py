@@ -128,7 +128,8 @@ def poses_from_tum(positions_m: np.ndarray, quaternions_xyzw: np.ndarray) -> np.
     """4x4 ``world_from_camera`` (..., 4, 4) from TUM lines' ``tx ty tz`` (..., 3) and ``qx qy qz qw`` (..., 4)."""
     positions_m, quaternions_xyzw = np.asarray(positions_m, np.float64), np.asarray(quaternions_xyzw, np.float64)
     out = np.broadcast_to(np.eye(4), positions_m.shape[:-1] + (4, 4)).copy()
-    out[..., :3, :3] = Rotation.from_quat(quaternions_xyzw.reshape(-1, 4)).as_matrix().reshape(positions_m.shape[:-1] + (3, 3))
+    rotations = Rotation.from_quat(quaternions_xyzw.reshape(-1, 4)).as_matrix()
+    out[..., :3, :3] = rotations.reshape(positions_m.shape[:-1] + (3, 3))
     out[..., :3, 3] = positions_m
     return out
 

@@ -1,10 +1,9 @@
 """Read (and prepare) the next frame of a sequence in a worker thread while the caller works on the current one.
 
 Decoding the images of a 640x480 frame (and resampling unregistered colour) and extracting its ORB features take
-about as long as tracking it, and run mostly in cv2 and numba, which release the GIL: reading
-:data:`FRAMES_AHEAD` frames ahead in one worker thread and preparing them in another, they overlap tracking where a
-core is free. Frames come
-out in order and each one exactly as ``sequence[index]`` gives it, so results do not change; an error reading or
+about as long as tracking it, and run mostly in cv2 and numba, which release the GIL: reading :data:`FRAMES_AHEAD`
+frames ahead in one worker thread and preparing them in another, they overlap tracking where a core is free. Frames
+come out in order and each one exactly as ``sequence[index]`` gives it, so results do not change; an error reading or
 preparing a frame is raised when the caller reaches that frame. The reader also scores each frame's sharpness
 (:func:`tambridge.images.sharpness`, on a thumbnail) for the Fusion Bridge's view selection.
 """

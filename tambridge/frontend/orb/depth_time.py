@@ -58,7 +58,8 @@ def _depth_at_colour_time_kernel(depth_m, rotation, translation, fx, fy, cx, cy)
             if not source_z > 0:
                 continue
             out[row, column] = (rotation[2, 0] * ray_x[source_column] * source_z
-                                + rotation[2, 1] * ray_y[source_row] * source_z + rotation[2, 2] * source_z + translation[2])
+                                + rotation[2, 1] * ray_y[source_row] * source_z
+                                + rotation[2, 2] * source_z + translation[2])
     return out
 
 

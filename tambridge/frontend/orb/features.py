@@ -175,7 +175,8 @@ def lift_keypoints(
     rows = np.clip(np.round(keypoints_px[:, 1]).astype(np.int64), 0, camera.height - 1)
     depth = keypoint_depths(depth_m, rows, columns, min_depth_m, max_depth_m, edge_window_px, edge_ratio)
     points = camera.backproject(keypoints_px, depth)
-    return FrameFeatures(keypoints_px, octaves, np.ascontiguousarray(descriptors), depth, points, rgb[rows, columns].copy())
+    return FrameFeatures(keypoints_px, octaves, np.ascontiguousarray(descriptors), depth, points,
+                         rgb[rows, columns].copy())
 
 
 def keypoint_depths(depth_m: np.ndarray, rows: np.ndarray, columns: np.ndarray, min_depth_m: float, max_depth_m: float,
@@ -225,7 +226,8 @@ def keypoint_depths_reference(depth_m: np.ndarray, rows: np.ndarray, columns: np
     if edge_window_px > 0:
         offsets = np.arange(-edge_window_px, edge_window_px + 1)
         patch = depth_m[np.clip(rows[:, None, None] + offsets[None, :, None], 0, height - 1),
-                        np.clip(columns[:, None, None] + offsets[None, None, :], 0, width - 1)].reshape(len(depth), offsets.size ** 2)
+                        np.clip(columns[:, None, None] + offsets[None, None, :], 0, width - 1)]
+        patch = patch.reshape(len(depth), offsets.size ** 2)
         span = patch.max(axis=1) - patch.min(axis=1)
         depth[~(patch > 0).all(axis=1) | ~(span <= edge_ratio * depth)] = 0.0
     return depth

@@ -32,14 +32,14 @@ next frames. Keyframes are chosen by the same rules as without the thread; when 
 still maps the previous one, tracking waits for it (ORB-SLAM, fed frames in real time, would skip the keyframe
 instead, but frames here come as fast as tracking takes them: under CPU load, skipping starved the map of
 keyframes and lost tracking). The frame after a keyframe waits until that keyframe's points are fused with its
-neighbours' (local BA may still be running), as inline it would track against the fused map: the share of the
-reference keyframe's points seen twice decides the next keyframe. One lock guards the map: tracking holds it for
-each frame, and while the thread has keyframes it changes nothing in the map but the points' visible / found
-counters (it waits for the thread before it adds a keyframe); the mapping thread reads the map without the lock,
-except those counters, and holds it while it changes the map. Frame poses are kept relative to their reference
-keyframe, so corrections made in the background carry over to tracking. A frame that fails against the local map while the thread still holds
-keyframes waits for it and tries again, before relocalisation. Without the thread everything runs inside ``track``
-and results are deterministic. ``timings_s`` sums wall time per stage over both threads.
+neighbours' (local BA may still be running), as inline it would track against the fused map: the share of the reference
+keyframe's points seen twice decides the next keyframe. One lock guards the map: tracking holds it for each frame, and
+while the thread has keyframes it changes nothing in the map but the points' visible / found counters (it waits for the
+thread before it adds a keyframe); the mapping thread reads the map without the lock, except those counters, and holds
+it while it changes the map. Frame poses are kept relative to their reference keyframe, so corrections made in the
+background carry over to tracking. A frame that fails against the local map while the thread still holds keyframes waits
+for it and tries again, before relocalisation. Without the thread everything runs inside ``track`` and results are
+deterministic. ``timings_s`` sums wall time per stage over both threads.
 """
 
 from __future__ import annotations
@@ -858,8 +858,8 @@ class OrbFrontend:
         )
 
     # ------------------------------------------------------------------ checkpoints
-    _TRANSIENT = ("camera", "config", "K", "extractor", "vocabulary", "_lock", "_timing_lock", "_mapping_idle", "_keyframe_fused", "_jobs",
-                  "_worker", "_worker_error")
+    _TRANSIENT = ("camera", "config", "K", "extractor", "vocabulary", "_lock", "_timing_lock", "_mapping_idle",
+                  "_keyframe_fused", "_jobs", "_worker", "_worker_error")
     """Attributes a checkpoint leaves out: given to or rebuilt by the constructor, or threads and locks."""
 
     def state_dict(self) -> dict:

@@ -92,8 +92,9 @@ def fuse_with_neighbours(slam_map: SlamMap, keyframe: Keyframe, camera: Camera, 
 
     Only the changes to the map are made while holding ``lock``: the searches and the choice of descriptors only
     read it, and read nothing that the one other thread (tracking, which holds the lock for each frame) changes
-    while a keyframe is being mapped (the points' visible / found counters), so tracking goes on meanwhile. The result is the same with or without
-    the lock: a neighbour's search reads nothing another neighbour's attachment changes.
+    while a keyframe is being mapped (the points' visible / found counters), so tracking goes on meanwhile. The
+    result is the same with or without the lock: a neighbour's search reads nothing another neighbour's attachment
+    changes.
     """
     neighbours = [slam_map.keyframes[i] for i in keyframe.best_covisible(FUSE_NEIGHBOURS)]
     neighbours = [k for k in neighbours if k.segment == keyframe.segment]
