@@ -270,7 +270,7 @@ def depth_fit(frames, sequence, estimate, gap: int = 1, step: int = 10) -> dict:
                          config.dense_depth_huber_sigmas, config.dense_depth_max_distance_m)
 
         def median_mm(b_from_a, term=term):
-            residual, _, associated, _ = dense_residuals_reference(b_from_a, term)
+            residual, _, associated = dense_residuals_reference(b_from_a, term)[:3]
             return 1e3 * float(np.median(np.abs(residual[associated])))
 
         truth_pose = inverse(truth_by_time[times[i + gap]]) @ truth_by_time[times[i]]

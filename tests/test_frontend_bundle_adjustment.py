@@ -6,6 +6,7 @@ import numpy as np
 import pycolmap
 import pytest
 
+from tambridge.frontend.orb import bundle_adjustment
 from tambridge.frontend.orb.bundle_adjustment import (
     BundleOptions,
     BundleProblem,
@@ -137,6 +138,32 @@ def test_robust_kernel_flags_gross_outliers():
     solution = solve_bundle_adjustment(problem, BundleOptions(iterations=20))
     assert solution.outliers[corrupted].mean() > 0.95
     assert solution.outliers.sum() < 1.2 * len(corrupted)
+
+
+def test_rejected_steps_count_against_the_iterations(monkeypatch):
+    """Each step tried costs a reduced system: a solve whose every step raises the cost (as steps across the depth
+    edges' nearest-pixel associations can, whatever their size) stops after ``iterations`` of them, where it used to
+    try ten per iteration, and keeps its start."""
+    problem, _, _ = make_problem(seed=3)
+    builds = []
+    costs = []
+    start_cost = bundle_adjustment._cost
+
+    def counted_reduced_system(*args):
+        builds.append(args[5])  # the damping it was built with
+        return _reduced_system(*args)
+
+    def cost_raised_by_any_step(*args):
+        costs.append(start_cost(*args) if not costs else np.inf)
+        return costs[-1]
+
+    monkeypatch.setattr(bundle_adjustment, "_reduced_system", counted_reduced_system)
+    monkeypatch.setattr(bundle_adjustment, "_cost", cost_raised_by_any_step)
+    solution = solve_bundle_adjustment(problem, BundleOptions(iterations=4))
+    assert len(builds) == 4
+    np.testing.assert_allclose(np.diff(np.log(builds)), np.log(4.0))  # each rejection raises the damping
+    assert np.array_equal(solution.camera_from_world, problem.camera_from_world)
+    assert np.array_equal(solution.points_world, problem.points_world)
 
 
 @pytest.mark.parametrize("robust", [False, True])

@@ -104,7 +104,7 @@ def test_kernel_matches_its_twin(views):
 def assert_jacobian_matches_finite_differences(jacobian, residuals_at, step=1e-6):
     """``jacobian`` (M, 6) against central differences of ``residuals_at(delta)`` (dense_residuals_reference's
     tuple after a step ``delta`` (6,)), on the samples whose association the steps leave as it was."""
-    _, _, associated, normals = residuals_at(np.zeros(6))
+    associated, normals = residuals_at(np.zeros(6))[2:4]
     for axis in range(6):
         delta = np.zeros(6)
         delta[axis] = step
@@ -127,7 +127,7 @@ def test_jacobian_matches_finite_differences(views):
 def test_residuals_vanish_at_the_true_pose_and_grow_away_from_it(views):
     term = make_term(views)
     true_camera_from_world = inverse(views[2])
-    residual, _, associated, _ = dense_residuals_reference(true_camera_from_world, term)
+    residual, _, associated = dense_residuals_reference(true_camera_from_world, term)[:3]
     # Exact depth: only the grid's piecewise-planar approximation of the surface remains.
     assert np.median(np.abs(residual[associated])) < 2e-3
     off = dense_residuals_reference(exp_se3(np.array([0.0, 0.0, 0.02, 0, 0, 0])) @ true_camera_from_world, term)
@@ -194,6 +194,52 @@ def test_pair_kernel_matches_its_twin_and_holds_the_motion_only_term(views):
     motion_only = dense_normal_equations(camera_from_world, moved)
     np.testing.assert_allclose(hessian[:6, :6], motion_only[0], rtol=1e-12)
     np.testing.assert_allclose(gradient[:6], motion_only[1], rtol=1e-12)
+
+
+def test_pair_kernel_hands_its_associations_on_to_the_cost(views):
+    """Bundle adjustment holds the associations of a linearisation through the steps it tries: the kernel writes
+    the twin's, and the cost at a moved pose with them held matches the twin's with the same cells."""
+    term = make_term(views, huber=1.0)
+    camera_from_world = perturbed(inverse(views[2]), 0.01, seed=3)
+    reference_from_world = perturbed(inverse(views[0]), 0.005, seed=4)
+    cells = np.empty(len(term.samples_camera_m), np.int64)
+    cost = dense_pair_normal_equations(camera_from_world, reference_from_world, term, cells)[2]
+    twin_cells = dense_residuals_reference(camera_from_world, dataclasses.replace(
+        term, reference_from_world=reference_from_world))[4]
+    np.testing.assert_array_equal(cells, twin_cells)
+    assert dense_pair_cost(camera_from_world, reference_from_world, term, cells) == pytest.approx(cost, rel=1e-12)
+    moved = exp_se3(np.array([0.004, -0.003, 0.006, 0.004, 0.003, -0.002])) @ camera_from_world
+    held = dense_pair_cost(moved, reference_from_world, term, cells)
+    assert held == pytest.approx(dense_pair_normal_equations_reference(moved, reference_from_world, term, cells)[2],
+                                 rel=1e-9)
+    # The step moved samples into other cells: associated anew, the cost is another one.
+    moved_cells = dense_residuals_reference(moved, dataclasses.replace(term, reference_from_world=reference_from_world))[4]
+    assert (moved_cells != cells).mean() > 0.05
+    assert abs(dense_pair_cost(moved, reference_from_world, term) - held) > 1e-3 * held
+
+
+def test_cost_with_held_associations_has_the_kernels_gradient(views):
+    """With the associations held, the cost's central differences along any direction of both poses are twice the
+    kernel's gradient (cost = sum rho, g = sum rho' J r / sigma^2): the steps are judged by the cost whose
+    gradient they follow."""
+    term = make_term(views, huber=1.0)
+    camera_from_world = perturbed(inverse(views[2]), 0.01, seed=7)
+    reference_from_world = perturbed(inverse(views[0]), 0.005, seed=8)
+    cells = np.empty(len(term.samples_camera_m), np.int64)
+    _, gradient, _, _ = dense_pair_normal_equations(camera_from_world, reference_from_world, term, cells)
+    rng = np.random.default_rng(9)
+    step = 1e-6
+    for _ in range(4):
+        direction = rng.normal(size=12)
+        direction /= np.linalg.norm(direction)
+
+        def held_cost(sign):
+            camera = exp_se3(sign * step * direction[:6]) @ camera_from_world
+            reference = exp_se3(sign * step * direction[6:]) @ reference_from_world
+            return dense_pair_cost(camera, reference, term, cells)
+
+        numeric = (held_cost(1.0) - held_cost(-1.0)) / (2 * step)
+        assert numeric == pytest.approx(2.0 * gradient @ direction, rel=1e-4, abs=1e-6 * np.abs(gradient).sum())
 
 
 def test_pair_jacobian_of_the_reference_matches_finite_differences(views):

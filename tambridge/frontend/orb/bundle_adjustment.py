@@ -78,19 +78,27 @@ class DepthPair:
     term: DenseTerm
 
 
-def _pairs_cost(pairs, camera_from_world: np.ndarray) -> float:
-    """0.5 * the depth edges' robust cost (the BA cost's convention)."""
-    return 0.5 * sum(dense_pair_cost(camera_from_world[pair.camera], camera_from_world[pair.reference], pair.term)
-                     for pair in pairs)
+def _pairs_cost(pairs, camera_from_world: np.ndarray, cells: list[np.ndarray] | None = None) -> float:
+    """0.5 * the depth edges' robust cost (the BA cost's convention); with ``cells`` (one (M,) array per edge, from
+    :func:`_add_pairs`) the samples keep those associations."""
+    return 0.5 * sum(dense_pair_cost(camera_from_world[pair.camera], camera_from_world[pair.reference], pair.term,
+                                     None if cells is None else cells[i])
+                     for i, pair in enumerate(pairs))
 
 
 def _add_pairs(pairs, camera_from_world, variable_index, h_cc, b_c):
     """Adds the depth edges' diagonal blocks to ``h_cc``, ``b_c`` in place; returns their off-diagonal blocks
-    ``[(va, vb, H_ab (6, 6))]`` between two variable cameras."""
+    ``[(va, vb, H_ab (6, 6))]`` between two variable cameras, each edge's associations (``cells``, (M,) each) and
+    the edges' cost there (as :func:`_pairs_cost`)."""
     off_diagonal = []
+    cells = []
+    cost = 0.0
     for pair in pairs:
-        hessian, gradient, _, _ = dense_pair_normal_equations(camera_from_world[pair.camera],
-                                                              camera_from_world[pair.reference], pair.term)
+        cells.append(np.empty(len(pair.term.samples_camera_m), np.int64))
+        hessian, gradient, pair_cost, _ = dense_pair_normal_equations(camera_from_world[pair.camera],
+                                                                      camera_from_world[pair.reference], pair.term,
+                                                                      cells[-1])
+        cost += 0.5 * pair_cost
         index = (variable_index[pair.camera], variable_index[pair.reference])
         for side, v in enumerate(index):
             if v >= 0:
@@ -98,12 +106,13 @@ def _add_pairs(pairs, camera_from_world, variable_index, h_cc, b_c):
                 b_c[v] -= gradient[6 * side:6 * side + 6]
         if index[0] >= 0 and index[1] >= 0:
             off_diagonal.append((index[0], index[1], hessian[:6, 6:]))
-    return off_diagonal
+    return off_diagonal, cells, cost
 
 
 @dataclasses.dataclass(frozen=True)
 class BundleOptions:
-    """``robust``: Huber kernel on each observation's chi2 (else plain least squares)."""
+    """``iterations``: the most LM steps tried, rejected ones included (as Ceres counts them; each costs a reduced
+    system). ``robust``: Huber kernel on each observation's chi2 (else plain least squares)."""
 
     iterations: int = 10
     robust: bool = True
@@ -366,10 +375,12 @@ def _evaluate(problem: BundleProblem, camera_from_world, points_world, weights, 
     )
 
 
-def _cost(problem: BundleProblem, camera_from_world, points_world, weights, thresholds, robust) -> float:
-    """The BA cost: the observations' ``0.5 * sum(rho(chi2))`` plus the depth edges' (always robust) cost."""
+def _cost(problem: BundleProblem, camera_from_world, points_world, weights, thresholds, robust,
+          cells: list[np.ndarray] | None = None) -> float:
+    """The BA cost: the observations' ``0.5 * sum(rho(chi2))`` plus the depth edges' (always robust) cost, their
+    samples associated anew or, with ``cells``, as there."""
     return _evaluate(problem, camera_from_world, points_world, weights, thresholds, robust)[0] \
-        + _pairs_cost(problem.depth_pairs, camera_from_world)
+        + _pairs_cost(problem.depth_pairs, camera_from_world, cells)
 
 
 def bundle_cost(problem: BundleProblem, camera_from_world=None, points_world=None, robust=False) -> float:
@@ -383,7 +394,10 @@ def bundle_cost(problem: BundleProblem, camera_from_world=None, points_world=Non
 
 
 def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = BundleOptions()) -> BundleSolution:
-    """Minimise the (robust) RGB-D reprojection error over variable cameras and all points, by LM."""
+    """Minimise the (robust) RGB-D reprojection error over variable cameras and all points, by LM: at most
+    ``options.iterations`` steps, each rejected one raising the damping and each accepted one relinearising. The
+    depth edges' samples keep the associations of the last linearisation through the steps tried from it (see
+    :mod:`~tambridge.frontend.orb.dense_depth`): the cost those steps are judged by is then smooth."""
     n_cameras = len(problem.camera_from_world)
     camera_from_world = problem.camera_from_world.copy()
     points_world = problem.points_world.copy()
@@ -401,15 +415,19 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
     cost = _cost(problem, camera_from_world, points_world, weights, thresholds, options.robust)
     initial_cost = cost
     damping = options.initial_damping
-    for _ in range(options.iterations):
+    steps = 0
+    while steps < options.iterations:
         h_cc, b_c, h_pp, b_p, h_cp = _linearise_kernel(
             np.ascontiguousarray(camera_from_world[:, :3, :3]), np.ascontiguousarray(camera_from_world[:, :3, 3]),
             points_world, problem.observation_camera, problem.observation_point, problem.observations, weights,
             thresholds, options.robust, variable_index, n_variable, *_intrinsics(problem.K),
         )
-        off_diagonal = _add_pairs(problem.depth_pairs, camera_from_world, variable_index, h_cc, b_c)
+        off_diagonal, cells, pairs_cost = _add_pairs(problem.depth_pairs, camera_from_world, variable_index, h_cc, b_c)
+        if problem.depth_pairs:  # the cost at this point with the new associations, which the steps are held to
+            cost = _evaluate(problem, camera_from_world, points_world, weights, thresholds, options.robust)[0] + pairs_cost
         improved = False
-        for _ in range(10):
+        while steps < options.iterations:
+            steps += 1
             reduced, rhs, h_pp_inverse = _reduced_system(h_cc, b_c, h_pp, b_p, h_cp, damping,
                                                           problem.observation_point, obs_variable, point_start, order)
             for va, vb, block in off_diagonal:
@@ -428,7 +446,8 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
             for camera in np.flatnonzero(variable_index >= 0):
                 candidate_cameras[camera] = exp_se3(delta_cameras[variable_index[camera]]) @ camera_from_world[camera]
             candidate_points = points_world + delta_points
-            candidate_cost = _cost(problem, candidate_cameras, candidate_points, weights, thresholds, options.robust)
+            candidate_cost = _cost(problem, candidate_cameras, candidate_points, weights, thresholds, options.robust,
+                                   cells)
             if candidate_cost < cost:
                 relative_decrease = (cost - candidate_cost) / max(cost, 1e-300)
                 camera_from_world, points_world = candidate_cameras, candidate_points

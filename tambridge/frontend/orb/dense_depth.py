@@ -9,7 +9,10 @@ residual is ``r = n . (q - p_ref)`` (metres). Samples beyond ``max_distance_m`` 
 depth have none. Each residual is whitened by the depth noise of both ends, ``sigma^2 = k^2 (z_ref^4 + z^4)``,
 weighted by ``weight / M`` (M samples: the whole term weighs as ``weight`` whitened residuals, however many
 pixels it samples, so ORB's matches lead where they are many) and down-weighted by Huber's kernel at
-``huber_sigmas``. Poses update on the left as in :mod:`~tambridge.frontend.orb.reprojection`:
+``huber_sigmas``. Bundle adjustment holds each sample's association (its cell, or none) through the steps tried
+from one linearisation, as ICP does, and makes it again at the next (:func:`dense_pair_normal_equations`,
+:func:`dense_pair_cost`): associating anew inside a step makes the cost jump wherever a sample changes cell, so
+that near the minimum steps of any size could raise it. Poses update on the left as in :mod:`~tambridge.frontend.orb.reprojection`:
 ``camera_from_world <- exp(delta) @ camera_from_world``; then ``dr/d(delta) = [m, p x m]`` with
 ``m = R^T n`` (``R`` the rotation of reference_from_camera).
 """
@@ -103,10 +106,12 @@ def dense_samples(depth_m: np.ndarray, K: np.ndarray, stride: int, min_depth_m: 
 
 @numba.njit(cache=True, nogil=True)
 def _dense_system(camera_from_world, reference_from_world, samples, reference_points, normals, stride, fx, fy, cx, cy,
-                  sample_weight, noise, huber, max_distance, with_reference, with_system=True):
+                  sample_weight, noise, huber, max_distance, with_reference, with_system, cells, reuse_cells):
     """Point-to-plane Gauss-Newton system over the camera's update (size 6) or, ``with_reference``, over
     ``[delta_camera, delta_reference]`` (size 12): ``(H, g, cost, associated count)``; without ``with_system``
-    H and g stay zero (the cost alone)."""
+    H and g stay zero (the cost alone). ``cells`` (M,) int64 holds each sample's association as the flat index
+    ``row * w + column`` of its reference cell, -1 for none: with ``reuse_cells`` the samples keep those (and no
+    distance gate applies), otherwise they are associated here and, where ``cells`` is not empty, written to it."""
     size = 12 if with_reference else 6
     hessian = np.zeros((size, size))
     gradient = np.zeros(size)
@@ -129,20 +134,30 @@ def _dense_system(camera_from_world, reference_from_world, samples, reference_po
         x = rotation[0, 0] * px + rotation[0, 1] * py + rotation[0, 2] * pz + translation[0]
         y = rotation[1, 0] * px + rotation[1, 1] * py + rotation[1, 2] * pz + translation[1]
         z = rotation[2, 0] * px + rotation[2, 1] * py + rotation[2, 2] * pz + translation[2]
-        if z <= MIN_DEPTH_M:
-            continue
-        u, v = pinhole_numba(x, y, z, fx, fy, cx, cy)
-        column = int(np.floor(u / stride + 0.5))
-        row = int(np.floor(v / stride + 0.5))
-        if column < 0 or row < 0 or column >= width or row >= height:
-            continue
+        if reuse_cells:
+            if cells[i] < 0:
+                continue
+            row, column = cells[i] // width, cells[i] % width
+        else:
+            if cells.shape[0] > 0:
+                cells[i] = -1
+            if z <= MIN_DEPTH_M:
+                continue
+            u, v = pinhole_numba(x, y, z, fx, fy, cx, cy)
+            column = int(np.floor(u / stride + 0.5))
+            row = int(np.floor(v / stride + 0.5))
+            if column < 0 or row < 0 or column >= width or row >= height:
+                continue
         nx, ny, nz = normals[row, column, 0], normals[row, column, 1], normals[row, column, 2]
         if nx == 0.0 and ny == 0.0 and nz == 0.0:
             continue
         qx, qy, qz = reference_points[row, column, 0], reference_points[row, column, 1], reference_points[row, column, 2]
         residual = nx * (qx - x) + ny * (qy - y) + nz * (qz - z)
-        if abs(residual) > max_distance:
-            continue
+        if not reuse_cells:
+            if abs(residual) > max_distance:
+                continue
+            if cells.shape[0] > 0:
+                cells[i] = row * width + column
         sigma2 = noise * noise * (qz * qz * qz * qz + pz * pz * pz * pz)
         whitened2 = residual * residual / sigma2
         kernel = 1.0
@@ -180,7 +195,8 @@ def dense_normal_equations_numba(camera_from_world, reference_from_world, sample
                                  fx, fy, cx, cy, sample_weight, noise, huber, max_distance):
     """Point-to-plane Gauss-Newton system ``(H (6, 6), g (6,), cost, associated count)``; see the module docstring."""
     return _dense_system(camera_from_world, reference_from_world, samples, reference_points, normals, stride,
-                         fx, fy, cx, cy, sample_weight, noise, huber, max_distance, False)
+                         fx, fy, cx, cy, sample_weight, noise, huber, max_distance, False, True, np.empty(0, np.int64),
+                         False)
 
 
 def kernel_arguments(term: DenseTerm | None) -> tuple:
@@ -233,26 +249,32 @@ def align_depth(camera_from_world: np.ndarray, term: DenseTerm, iterations: int 
     return DepthAlignment(pose, associated / max(1, len(term.samples_camera_m)), max(0.0, conditioning))
 
 
-def dense_pair_normal_equations(camera_from_world: np.ndarray, reference_from_world: np.ndarray,
-                                term: DenseTerm) -> tuple[np.ndarray, np.ndarray, float, int]:
+def dense_pair_normal_equations(camera_from_world: np.ndarray, reference_from_world: np.ndarray, term: DenseTerm,
+                                cells: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, int]:
     """``(H (12, 12), g (12,), robust cost, associated samples)`` of the term with the reference's pose
     ``reference_from_world`` variable too (``term.reference_from_world`` is not used), over
-    ``[delta_camera, delta_reference]``."""
+    ``[delta_camera, delta_reference]``, associations made at these poses; ``cells`` (M,) int64, where given,
+    receives them (each sample's flat reference cell index, -1 for none) for :func:`dense_pair_cost`."""
     return _dense_system(np.ascontiguousarray(camera_from_world, np.float64),
-                         np.ascontiguousarray(reference_from_world, np.float64), *kernel_arguments(term)[1:], True)
+                         np.ascontiguousarray(reference_from_world, np.float64), *kernel_arguments(term)[1:], True, True,
+                         np.empty(0, np.int64) if cells is None else cells, False)
 
 
-def dense_pair_cost(camera_from_world: np.ndarray, reference_from_world: np.ndarray, term: DenseTerm) -> float:
+def dense_pair_cost(camera_from_world: np.ndarray, reference_from_world: np.ndarray, term: DenseTerm,
+                    cells: np.ndarray | None = None) -> float:
     """The term's robust cost at these two poses (``term.reference_from_world`` is not used), as
-    :func:`dense_pair_normal_equations` gives it, without building the system."""
+    :func:`dense_pair_normal_equations` gives it, without building the system; with ``cells`` (M,), the
+    associations that function wrote, the samples keep them instead of being associated at these poses."""
     return _dense_system(np.ascontiguousarray(camera_from_world, np.float64),
                          np.ascontiguousarray(reference_from_world, np.float64), *kernel_arguments(term)[1:], False,
-                         False)[2]
+                         False, np.empty(0, np.int64) if cells is None else cells, cells is not None)[2]
 
 
-def dense_residuals_reference(camera_from_world: np.ndarray, term: DenseTerm) -> tuple[np.ndarray, ...]:
-    """Slow twin's association, with numpy: ``(residual (M,), sigma^2 (M,), associated (M,) bool, normals (M, 3))``
-    per sample (residual 0, sigma^2 1 and normal 0 where a sample has no association)."""
+def dense_residuals_reference(camera_from_world: np.ndarray, term: DenseTerm,
+                              cells: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """Slow twin's association, with numpy: ``(residual (M,), sigma^2 (M,), associated (M,) bool, normals (M, 3),
+    cells (M,))`` per sample (residual 0, sigma^2 1 and normal 0 where a sample has no association; ``cells`` the
+    flat reference cell index, -1 for none). Given ``cells``, the samples keep those associations, ungated."""
     reference = term.reference
     points_reference = transform_points(term.reference_from_world @ inverse(camera_from_world), term.samples_camera_m)
     z = points_reference[:, 2]
@@ -264,24 +286,29 @@ def dense_residuals_reference(camera_from_world: np.ndarray, term: DenseTerm) ->
     row = np.floor(v / reference.stride + 0.5).astype(np.int64)
     height, width = reference.normals.shape[:2]
     inside = in_front & (column >= 0) & (row >= 0) & (column < width) & (row < height)
+    if cells is not None:
+        inside = cells >= 0
+        row, column = np.divmod(cells, width)
     row, column = np.where(inside, row, 0), np.where(inside, column, 0)
     normals = reference.normals[row, column]
     vertices = reference.points_camera_m[row, column]
     residual = np.einsum("ij,ij->i", normals, vertices - points_reference)
-    associated = inside & np.any(normals != 0, axis=1) & (np.abs(residual) <= term.max_distance_m)
+    associated = inside & np.any(normals != 0, axis=1)
+    if cells is None:
+        associated &= np.abs(residual) <= term.max_distance_m
     sigma2 = term.depth_noise_per_m**2 * (vertices[:, 2] ** 4 + term.samples_camera_m[:, 2] ** 4)
     return (np.where(associated, residual, 0.0), np.where(associated, sigma2, 1.0), associated,
-            np.where(associated[:, None], normals, 0.0))
+            np.where(associated[:, None], normals, 0.0), np.where(associated, row * width + column, -1))
 
 
-def dense_jacobian_reference(camera_from_world: np.ndarray, term: DenseTerm) -> np.ndarray:
+def dense_jacobian_reference(camera_from_world: np.ndarray, term: DenseTerm, cells: np.ndarray | None = None) -> np.ndarray:
     """(M, 6) d(residual)/d(delta) per sample, zero where a sample has no association.
 
     r = n . (q - p_ref) with q, n held at their association and p_ref(delta) = A exp(-delta) p (A =
     reference_from_camera; the left update of camera_from_world is exp(-delta) on the right of
     world_from_camera), so dr/d(delta) = n^T R_A [I, -hat(p)].
     """
-    normals = dense_residuals_reference(camera_from_world, term)[3]
+    normals = dense_residuals_reference(camera_from_world, term, cells)[3]
     rotation = (term.reference_from_world @ inverse(camera_from_world))[:3, :3]
     points = term.samples_camera_m
     point_by_delta = np.zeros((len(points), 3, 6))
@@ -298,10 +325,12 @@ def dense_normal_equations_reference(camera_from_world: np.ndarray, term: DenseT
     return _robust_system(camera_from_world, term, dense_jacobian_reference(camera_from_world, term))
 
 
-def _robust_system(camera_from_world: np.ndarray, term: DenseTerm, jacobian: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, int]:
+def _robust_system(camera_from_world: np.ndarray, term: DenseTerm, jacobian: np.ndarray,
+                   cells: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, int]:
     """The twins' Huber-weighted Gauss-Newton system of the term's residuals at ``camera_from_world`` with
-    ``jacobian`` (M, n): ``(H (n, n), g (n,), robust cost, associated samples)``."""
-    residual, sigma2, associated, _ = dense_residuals_reference(camera_from_world, term)
+    ``jacobian`` (M, n): ``(H (n, n), g (n,), robust cost, associated samples)``; ``cells`` as in
+    :func:`dense_residuals_reference`."""
+    residual, sigma2, associated = dense_residuals_reference(camera_from_world, term, cells)[:3]
     whitened2 = residual**2 / sigma2
     huber, huber2 = term.huber_sigmas, term.huber_sigmas**2
     kernel = np.where(whitened2 <= huber2, 1.0, huber / np.sqrt(np.maximum(whitened2, 1e-300)))
@@ -312,18 +341,21 @@ def _robust_system(camera_from_world: np.ndarray, term: DenseTerm, jacobian: np.
     return hessian, gradient, float(term.sample_weight * cost[associated].sum()), int(associated.sum())
 
 
-def dense_pair_jacobian_reference(camera_from_world: np.ndarray, term: DenseTerm) -> np.ndarray:
+def dense_pair_jacobian_reference(camera_from_world: np.ndarray, term: DenseTerm,
+                                  cells: np.ndarray | None = None) -> np.ndarray:
     """(M, 12) d(residual)/d([delta_camera, delta_reference]) per sample, zero where a sample has no association:
     the camera's block is :func:`dense_jacobian_reference`; moving the reference by ``exp(delta)`` moves
     ``p_ref`` by ``rho + phi x p_ref`` with q, n held, so its block is ``-[n, p_ref x n]``."""
-    normals = dense_residuals_reference(camera_from_world, term)[3]
+    normals = dense_residuals_reference(camera_from_world, term, cells)[3]
     points_reference = transform_points(term.reference_from_world @ inverse(camera_from_world), term.samples_camera_m)
     reference_block = -np.concatenate([normals, np.cross(points_reference, normals)], axis=1)
-    return np.concatenate([dense_jacobian_reference(camera_from_world, term), reference_block], axis=1)
+    return np.concatenate([dense_jacobian_reference(camera_from_world, term, cells), reference_block], axis=1)
 
 
 def dense_pair_normal_equations_reference(camera_from_world: np.ndarray, reference_from_world: np.ndarray,
-                                          term: DenseTerm) -> tuple[np.ndarray, np.ndarray, float, int]:
-    """Slow twin of :func:`dense_pair_normal_equations`, on whole arrays with :func:`dense_pair_jacobian_reference`."""
+                                          term: DenseTerm, cells: np.ndarray | None = None,
+                                          ) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Slow twin of :func:`dense_pair_normal_equations` and, with ``cells`` (associations held), of
+    :func:`dense_pair_cost`; on whole arrays with :func:`dense_pair_jacobian_reference`."""
     term = dataclasses.replace(term, reference_from_world=reference_from_world)
-    return _robust_system(camera_from_world, term, dense_pair_jacobian_reference(camera_from_world, term))
+    return _robust_system(camera_from_world, term, dense_pair_jacobian_reference(camera_from_world, term, cells), cells)
