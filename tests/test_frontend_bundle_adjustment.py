@@ -141,9 +141,8 @@ def test_robust_kernel_flags_gross_outliers():
 
 
 def test_rejected_steps_count_against_the_iterations(monkeypatch):
-    """Each step tried costs a reduced system: a solve whose every step raises the cost (as steps across the depth
-    edges' nearest-pixel associations can, whatever their size) stops after ``iterations`` of them, where it used to
-    try ten per iteration, and keeps its start."""
+    """Each step tried costs a reduced system: a solve whose every step raises the cost stops after ``iterations``
+    steps, each more damped than the last, and keeps its start."""
     problem, _, _ = make_problem(seed=3)
     builds = []
     costs = []
@@ -254,6 +253,35 @@ def test_a_depth_edge_pulls_a_camera_onto_the_other_cameras_depth():
     assert np.linalg.norm(inverse(start)[:3, 3] - world_from_second[:3, 3]) > 1e-2
     assert np.linalg.norm((solution.camera_from_world[1] @ world_from_second)[:3, 3]) < 1e-3
     assert solution.final_cost < 0.01 * solution.initial_cost
+
+
+def test_steps_across_a_depth_edge_are_judged_with_the_linearisations_associations(monkeypatch):
+    """With points and a depth edge, every step tried is accepted: the depth edge's samples keep the associations of
+    the linearisation the step came from, and the cost a step must beat is taken with those. Associated anew at each
+    trial, or compared with the cost of the previous associations, steps get rejected. The final cost is the one at
+    the solution with its own associations."""
+    problem, _, _ = make_problem(seed=3, depth_noise_per_m=0.02)
+    problem = dataclasses.replace(problem, depth_pairs=(DepthPair(camera=3, reference=2, term=room_depth_edge()[2]),))
+    linearisations, steps = [], []
+    add_pairs = bundle_adjustment._add_pairs
+
+    def counted_add_pairs(*args):
+        linearisations.append(1)
+        return add_pairs(*args)
+
+    def counted_reduced_system(*args):
+        steps.append(1)
+        return _reduced_system(*args)
+
+    monkeypatch.setattr(bundle_adjustment, "_add_pairs", counted_add_pairs)
+    monkeypatch.setattr(bundle_adjustment, "_reduced_system", counted_reduced_system)
+    solution = solve_bundle_adjustment(problem, BundleOptions(iterations=20))
+    assert len(linearisations) == len(steps) >= 5
+    assert solution.final_cost < 0.9 * solution.initial_cost
+    for iterations in (1, 20):  # one step leaves it far from the associations it was taken with
+        solution = solve_bundle_adjustment(problem, BundleOptions(iterations=iterations))
+        assert solution.final_cost == pytest.approx(
+            bundle_cost(problem, solution.camera_from_world, solution.points_world, robust=True), rel=1e-12)
 
 
 def test_depth_edges_add_their_cost_to_the_points():

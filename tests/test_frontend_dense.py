@@ -212,10 +212,28 @@ def test_pair_kernel_hands_its_associations_on_to_the_cost(views):
     held = dense_pair_cost(moved, reference_from_world, term, cells)
     assert held == pytest.approx(dense_pair_normal_equations_reference(moved, reference_from_world, term, cells)[2],
                                  rel=1e-9)
+    # Far from the linearisation most held samples fall behind the reference camera: still the twin's cost.
+    far = exp_se3(np.array([0.0, 0.0, 4.0, 0.0, 0.0, 0.0])) @ camera_from_world
+    assert dense_pair_cost(far, reference_from_world, term, cells) == pytest.approx(
+        dense_pair_normal_equations_reference(far, reference_from_world, term, cells)[2], rel=1e-9)
     # The step moved samples into other cells: associated anew, the cost is another one.
-    moved_cells = dense_residuals_reference(moved, dataclasses.replace(term, reference_from_world=reference_from_world))[4]
+    moved_cells = dense_residuals_reference(moved, dataclasses.replace(
+        term, reference_from_world=reference_from_world))[4]
     assert (moved_cells != cells).mean() > 0.05
     assert abs(dense_pair_cost(moved, reference_from_world, term) - held) > 1e-3 * held
+
+
+@pytest.mark.parametrize("cells, message", [
+    (np.zeros(3, np.int64), "contiguous int64 array of"),
+    (None, "must lie in"),
+])
+def test_held_associations_are_checked_before_the_kernel_reads_them(views, cells, message):
+    """The kernel reads and writes ``cells`` unchecked: a wrong length or a cell off the grid fails first."""
+    term = make_term(views)
+    if cells is None:
+        cells = np.full(len(term.samples_camera_m), term.reference.normals.shape[0] * term.reference.normals.shape[1])
+    with pytest.raises(ValueError, match=message):
+        dense_pair_cost(inverse(views[2]), inverse(views[0]), term, cells)
 
 
 def test_cost_with_held_associations_has_the_kernels_gradient(views):

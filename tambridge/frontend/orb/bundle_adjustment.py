@@ -122,9 +122,9 @@ class BundleOptions:
 
 @dataclasses.dataclass
 class BundleSolution:
-    """Refined ``camera_from_world`` (C, 4, 4) and ``points_world`` (P, 3), the robust cost before and after, and
-    ``outliers`` (O,): the observations whose chi2 at the solution lies beyond the 95% quantile (or behind the
-    camera)."""
+    """Refined ``camera_from_world`` (C, 4, 4) and ``points_world`` (P, 3), the robust cost before and after (the
+    depth edges' samples associated at each), and ``outliers`` (O,): the observations whose chi2 at the solution
+    lies beyond the 95% quantile (or behind the camera)."""
 
     camera_from_world: np.ndarray
     points_world: np.ndarray
@@ -422,9 +422,11 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
             points_world, problem.observation_camera, problem.observation_point, problem.observations, weights,
             thresholds, options.robust, variable_index, n_variable, *_intrinsics(problem.K),
         )
-        off_diagonal, cells, pairs_cost = _add_pairs(problem.depth_pairs, camera_from_world, variable_index, h_cc, b_c)
-        if problem.depth_pairs:  # the cost at this point with the new associations, which the steps are held to
-            cost = _evaluate(problem, camera_from_world, points_world, weights, thresholds, options.robust)[0] + pairs_cost
+        off_diagonal, cells, pairs_cost = _add_pairs(problem.depth_pairs, camera_from_world, variable_index, h_cc,
+                                                     b_c)
+        if problem.depth_pairs:  # the cost here with the new associations, which the steps from here are held to
+            cost = _evaluate(problem, camera_from_world, points_world, weights, thresholds, options.robust)[0] \
+                + pairs_cost
         improved = False
         while steps < options.iterations:
             steps += 1
@@ -458,6 +460,8 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
             damping *= 4.0
         if not improved or relative_decrease < options.relative_tolerance:
             break
+    if problem.depth_pairs:  # ``cost`` held the last linearisation's associations
+        cost = _cost(problem, camera_from_world, points_world, weights, thresholds, options.robust)
     final_chi2 = _evaluate(problem, camera_from_world, points_world, weights, thresholds, False)[1]
     return BundleSolution(
         camera_from_world=camera_from_world,

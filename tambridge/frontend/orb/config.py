@@ -149,7 +149,7 @@ class OrbFrontendConfig:
     # Local BA over the new keyframe and its best covisible keyframes.
     local_ba_keyframes: int = setting(10, "keyframes optimised by local BA (the new one and its best covisible)",
                                       at_least(1))
-    local_ba_iterations: int = setting(6, "iterations of local BA (0: none)", NON_NEGATIVE)
+    local_ba_iterations: int = setting(6, "LM steps of local BA, rejected ones included (0: none)", NON_NEGATIVE)
     # Loop closure and global BA.
     loop_closure: bool = setting(True, "detect and close loops with the keyframe database")
     vocabulary_path: str | None = setting(None, "ORB vocabulary .npz (null: the one shipped in tambridge/frontend/orb/data)")
@@ -161,7 +161,7 @@ class OrbFrontendConfig:
     loop_consistency: int = setting(3, "a loop candidate must have been one for this many keyframes before (0: any)",
                                     NON_NEGATIVE)
     global_ba: bool = setting(True, "global bundle adjustment once the last frame is tracked")
-    global_ba_iterations: int = setting(10, "iterations of global BA", NON_NEGATIVE)
+    global_ba_iterations: int = setting(10, "LM steps of global BA, rejected ones included", NON_NEGATIVE)
     # Inline keyframe work is deterministic; the thread overlaps it with tracking.
     mapping_thread: bool = setting(True, "keyframe work (fusion, local BA, loop closing) in a background thread "
                                          "(false: inline)")

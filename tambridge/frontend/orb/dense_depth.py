@@ -3,18 +3,18 @@
 The reference keyframe's depth becomes a vertex map and a normal map in its camera frame, on a grid of every
 ``stride``-th pixel (:func:`dense_reference`). The current frame contributes its valid depth pixels on a coarser
 grid, back-projected into its camera frame (:func:`dense_samples`). For the pose ``camera_from_world`` of the
-current frame, a sample ``p`` goes to the reference camera, ``p_ref = reference_from_world @ world_from_camera @ p``,
-is projected there and associated with the vertex ``q`` and normal ``n`` of the grid cell it falls in; its
-residual is ``r = n . (q - p_ref)`` (metres). Samples beyond ``max_distance_m`` or off the reference's valid
-depth have none. Each residual is whitened by the depth noise of both ends, ``sigma^2 = k^2 (z_ref^4 + z^4)``,
-weighted by ``weight / M`` (M samples: the whole term weighs as ``weight`` whitened residuals, however many
-pixels it samples, so ORB's matches lead where they are many) and down-weighted by Huber's kernel at
-``huber_sigmas``. Bundle adjustment holds each sample's association (its cell, or none) through the steps tried
-from one linearisation, as ICP does, and makes it again at the next (:func:`dense_pair_normal_equations`,
-:func:`dense_pair_cost`): associating anew inside a step makes the cost jump wherever a sample changes cell, so
-that near the minimum steps of any size could raise it. Poses update on the left as in :mod:`~tambridge.frontend.orb.reprojection`:
-``camera_from_world <- exp(delta) @ camera_from_world``; then ``dr/d(delta) = [m, p x m]`` with
-``m = R^T n`` (``R`` the rotation of reference_from_camera).
+current frame, a sample ``p`` goes to the reference camera, ``p_ref = reference_from_world @ world_from_camera @
+p``, is projected there and associated with the vertex ``q`` and normal ``n`` of the grid cell it falls in; its
+residual is ``r = n . (q - p_ref)`` (metres). Samples off the reference's valid depth, or beyond ``max_distance_m``
+when they are associated, have none (an association held, below, is not gated again). Each residual is whitened by
+the depth noise of both ends, ``sigma^2 = k^2 (z_ref^4 + z^4)``, weighted by ``weight / M`` (M samples: the whole
+term weighs as ``weight`` whitened residuals, however many pixels it samples, so ORB's matches lead where they are
+many) and down-weighted by Huber's kernel at ``huber_sigmas``. Bundle adjustment holds each sample's association
+(its cell, or none) through the steps tried from one linearisation, as ICP does, and makes it again at the next
+(:func:`dense_pair_normal_equations`, :func:`dense_pair_cost`): associating anew inside a step makes the cost jump
+wherever a sample changes cell, so that near the minimum steps of any size could raise it. Poses update on the left
+as in :mod:`~tambridge.frontend.orb.reprojection`: ``camera_from_world <- exp(delta) @ camera_from_world``; then
+``dr/d(delta) = [m, p x m]`` with ``m = R^T n`` (``R`` the rotation of reference_from_camera).
 """
 
 from __future__ import annotations
@@ -249,6 +249,18 @@ def align_depth(camera_from_world: np.ndarray, term: DenseTerm, iterations: int 
     return DepthAlignment(pose, associated / max(1, len(term.samples_camera_m)), max(0.0, conditioning))
 
 
+def _checked_cells(cells: np.ndarray, term: DenseTerm, read: bool) -> np.ndarray:
+    """``cells`` if the kernel may write (and, ``read``, index) it for ``term``: one int64 per sample, each cell -1 or
+    on the reference's grid; the kernel itself does not check, and out of bounds it would touch other memory."""
+    height, width = term.reference.normals.shape[:2]
+    if cells.dtype != np.int64 or cells.shape != (len(term.samples_camera_m),) or not cells.flags.c_contiguous:
+        raise ValueError(f"cells must be a contiguous int64 array of {len(term.samples_camera_m)} samples, got "
+                         f"{cells.dtype} {cells.shape}")
+    if read and len(cells) and not (-1 <= cells.min() and cells.max() < height * width):
+        raise ValueError(f"cells must lie in [-1, {height * width}) for a {width}x{height} reference grid")
+    return cells
+
+
 def dense_pair_normal_equations(camera_from_world: np.ndarray, reference_from_world: np.ndarray, term: DenseTerm,
                                 cells: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, int]:
     """``(H (12, 12), g (12,), robust cost, associated samples)`` of the term with the reference's pose
@@ -256,8 +268,8 @@ def dense_pair_normal_equations(camera_from_world: np.ndarray, reference_from_wo
     ``[delta_camera, delta_reference]``, associations made at these poses; ``cells`` (M,) int64, where given,
     receives them (each sample's flat reference cell index, -1 for none) for :func:`dense_pair_cost`."""
     return _dense_system(np.ascontiguousarray(camera_from_world, np.float64),
-                         np.ascontiguousarray(reference_from_world, np.float64), *kernel_arguments(term)[1:], True, True,
-                         np.empty(0, np.int64) if cells is None else cells, False)
+                         np.ascontiguousarray(reference_from_world, np.float64), *kernel_arguments(term)[1:], True,
+                         True, np.empty(0, np.int64) if cells is None else _checked_cells(cells, term, False), False)
 
 
 def dense_pair_cost(camera_from_world: np.ndarray, reference_from_world: np.ndarray, term: DenseTerm,
@@ -267,7 +279,8 @@ def dense_pair_cost(camera_from_world: np.ndarray, reference_from_world: np.ndar
     associations that function wrote, the samples keep them instead of being associated at these poses."""
     return _dense_system(np.ascontiguousarray(camera_from_world, np.float64),
                          np.ascontiguousarray(reference_from_world, np.float64), *kernel_arguments(term)[1:], False,
-                         False, np.empty(0, np.int64) if cells is None else cells, cells is not None)[2]
+                         False, np.empty(0, np.int64) if cells is None else _checked_cells(cells, term, True),
+                         cells is not None)[2]
 
 
 def dense_residuals_reference(camera_from_world: np.ndarray, term: DenseTerm,
@@ -301,7 +314,8 @@ def dense_residuals_reference(camera_from_world: np.ndarray, term: DenseTerm,
             np.where(associated[:, None], normals, 0.0), np.where(associated, row * width + column, -1))
 
 
-def dense_jacobian_reference(camera_from_world: np.ndarray, term: DenseTerm, cells: np.ndarray | None = None) -> np.ndarray:
+def dense_jacobian_reference(camera_from_world: np.ndarray, term: DenseTerm,
+                             cells: np.ndarray | None = None) -> np.ndarray:
     """(M, 6) d(residual)/d(delta) per sample, zero where a sample has no association.
 
     r = n . (q - p_ref) with q, n held at their association and p_ref(delta) = A exp(-delta) p (A =
