@@ -328,10 +328,11 @@ def track_frames(
                     checkpoints.after_frame(index + 1, result.is_keyframe)
             if stops is not None and stops.requested is not None:
                 stop_after_frame(stops.requested, index + 1, len(sequence), checkpoints, run_log)
-        if checkpoints is not None and tracked_after_first:
+        if checkpoints is not None and tracked_after_first and mapping is not None:
             # What follows (global BA, the map's last rounds, mesh, evaluation) can take as long again: a stop there
-            # resumes from here rather than from the last keyframe's checkpoint. (Where no frame tracked, the run
-            # fails next: nothing is worth resuming.)
+            # resumes from here rather than from the last keyframe's checkpoint. Without the Gaussian map what follows
+            # takes seconds, and writing the checkpoint would cost every run a part of that. (Where no frame
+            # tracked, the run fails next: nothing is worth resuming.)
             with run_log.stage("checkpoint"):
                 checkpoints.write_unless_written(len(sequence))
         if stops is not None and stops.requested is not None:

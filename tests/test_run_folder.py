@@ -261,6 +261,21 @@ def test_a_stop_after_tracking_resumes_from_the_checkpoint_of_its_last_frame(syn
     assert load_checkpoint(checkpoint_path(late)).next_frame == 6
 
 
+def test_a_run_without_the_gaussian_map_writes_no_checkpoint_after_its_last_frame(synthetic_sequence_dir, tmp_path,
+                                                                                  monkeypatch):
+    """After tracking only global BA, exports and evaluation are left, seconds of work: the run does not spend a
+    checkpoint on them, and the one it writes with the map on is still written (the test above resumes from it)."""
+    import pipelines.reconstruct as pipeline
+
+    written = []
+    monkeypatch.setattr(pipeline.KeyframeCheckpoints, "write_unless_written",
+                        lambda self, next_frame: written.append(next_frame))
+    for mapper in (False, True):
+        config = load_config(None, [*FAST, f"mapper.enabled={str(mapper).lower()}", "mapper.sharp_iterations_per_view=0"])
+        reconstruct(synthetic_sequence_dir, tmp_path / str(mapper), config, progress=False)
+        assert written == ([12] if mapper else [])
+
+
 def test_ground_truth_on_another_clock_leaves_the_results_and_says_why(synthetic_sequence_dir, tmp_path):
     sequence = tmp_path / "seq"
     shutil.copytree(synthetic_sequence_dir, sequence)
