@@ -281,8 +281,9 @@ def track_frames(
     stops: StopRequests | None = None,
 ) -> FrontendResult:
     """Track every frame from ``start_frame`` on, in order, mapping each keyframe (bridge, then mapper) as it comes;
-    returns the frontend's final result (after loop closure and global BA). With ``checkpoints``, the state after
-    the last frame is checkpointed too, before the frontend's finish, where this call tracked a frame after the first.
+    returns the frontend's final result (after loop closure and global BA). With ``checkpoints`` and ``mapping``, the
+    state after the last frame is checkpointed too, before the frontend's finish, where this call tracked a frame
+    after the first (without the Gaussian map what follows takes seconds, and none is written).
 
     After each frame ``counters`` count it, the mapping stage may ask the frontend for a keyframe where its map lacks
     coverage, ``live_view`` shows it and ``checkpoints`` are told of it (once it is mapped).

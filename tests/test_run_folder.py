@@ -263,15 +263,16 @@ def test_a_stop_after_tracking_resumes_from_the_checkpoint_of_its_last_frame(syn
 
 def test_a_run_without_the_gaussian_map_writes_no_checkpoint_after_its_last_frame(synthetic_sequence_dir, tmp_path,
                                                                                   monkeypatch):
-    """After tracking only global BA, exports and evaluation are left, seconds of work: the run does not spend a
-    checkpoint on them, and the one it writes with the map on is still written (the test above resumes from it)."""
+    """Without the Gaussian map only global BA, exports and evaluation follow the last frame, seconds of work: the
+    run does not spend a checkpoint on them; with the map on it is still written (the test above resumes from it)."""
     import pipelines.reconstruct as pipeline
 
     written = []
     monkeypatch.setattr(pipeline.KeyframeCheckpoints, "write_unless_written",
                         lambda self, next_frame: written.append(next_frame))
     for mapper in (False, True):
-        config = load_config(None, [*FAST, f"mapper.enabled={str(mapper).lower()}", "mapper.sharp_iterations_per_view=0"])
+        config = load_config(None, [*FAST, f"mapper.enabled={str(mapper).lower()}",
+                                    "mapper.sharp_iterations_per_view=0"])
         reconstruct(synthetic_sequence_dir, tmp_path / str(mapper), config, progress=False)
         assert written == ([12] if mapper else [])
 
