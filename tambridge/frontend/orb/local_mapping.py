@@ -46,7 +46,11 @@ def fuse_matches(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Where ``point_ids`` project into a keyframe and match a keypoint (ORB-SLAM's Fuse, its search alone):
     ``(keypoint indices (M,), point ids (M,))``. Points the keyframe already sees are skipped. Reads the map only."""
-    candidates = np.setdiff1d(point_ids, keyframe.point_ids, assume_unique=False)
+    # What np.setdiff1d gives (sorted, unique), by marking: its two sorts took a sixth of a keyframe's fusion.
+    marked = np.zeros(slam_map.points.count, bool)
+    marked[point_ids] = True
+    marked[keyframe.point_ids[keyframe.point_ids >= 0]] = False
+    candidates = np.flatnonzero(marked)
     if candidates.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     grid = build_keypoint_grid(keyframe.features.keypoints_px, camera.width, camera.height)
