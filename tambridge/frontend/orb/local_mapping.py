@@ -46,7 +46,8 @@ def fuse_matches(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Where ``point_ids`` project into a keyframe and match a keypoint (ORB-SLAM's Fuse, its search alone):
     ``(keypoint indices (M,), point ids (M,))``. Points the keyframe already sees are skipped. Reads the map only."""
-    # What np.setdiff1d gives (sorted, unique), by marking: its two sorts took a sixth of a keyframe's fusion.
+    # What np.setdiff1d gives (sorted, unique), by marking rather than sorting: this runs for every neighbour of a
+    # keyframe while the next frame waits for the fusion.
     marked = np.zeros(slam_map.points.count, bool)
     marked[point_ids] = True
     marked[keyframe.point_ids[keyframe.point_ids >= 0]] = False
