@@ -46,18 +46,22 @@ def fuse_matches(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Where ``point_ids`` project into a keyframe and match a keypoint (ORB-SLAM's Fuse, its search alone):
     ``(keypoint indices (M,), point ids (M,))``. Points the keyframe already sees are skipped. Reads the map only."""
-    # What np.setdiff1d gives (sorted, unique), by marking rather than sorting: this runs for every neighbour of a
-    # keyframe while the next frame waits for the fusion.
-    marked = np.zeros(slam_map.points.count, bool)
-    marked[point_ids] = True
-    marked[keyframe.point_ids[keyframe.point_ids >= 0]] = False
-    candidates = np.flatnonzero(marked)
+    candidates = points_not_seen_by(slam_map, keyframe, point_ids)
     if candidates.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     grid = build_keypoint_grid(keyframe.features.keypoints_px, camera.width, camera.height)
     keypoints, ids, _ = match_map_points(slam_map, candidates, keyframe.camera_from_world, keyframe.features, grid,
                                          camera, config, FUSE_RADIUS_PX)
     return keypoints, ids
+
+
+def points_not_seen_by(slam_map: SlamMap, keyframe: Keyframe, point_ids: np.ndarray) -> np.ndarray:
+    """The ids of ``point_ids`` that the keyframe does not observe, sorted and unique (``np.setdiff1d``'s result),
+    by marking rather than sorting: fusion asks it for every neighbour of a keyframe while the next frame waits."""
+    marked = np.zeros(slam_map.points.count, bool)
+    marked[point_ids] = True
+    marked[keyframe.point_ids[keyframe.point_ids >= 0]] = False
+    return np.flatnonzero(marked)
 
 
 def attach_fused(
