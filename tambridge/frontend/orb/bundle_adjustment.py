@@ -424,7 +424,9 @@ def solve_bundle_adjustment(problem: BundleProblem, options: BundleOptions = Bun
         )
         off_diagonal, cells, pairs_cost = _add_pairs(problem.depth_pairs, camera_from_world, variable_index, h_cc,
                                                      b_c)
-        if problem.depth_pairs:  # the cost here with the new associations, which the steps from here are held to
+        if problem.depth_pairs and steps > 0:
+            # The cost here with the new associations, which the steps from here are held to (at the start, ``cost``
+            # was taken with the associations made here).
             cost = _evaluate(problem, camera_from_world, points_world, weights, thresholds, options.robust)[0] \
                 + pairs_cost
         improved = False
