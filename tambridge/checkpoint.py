@@ -36,7 +36,7 @@ from tambridge.state import StateCodec, StateTypes, decode_state, dotted_items, 
 
 logger = logging.getLogger("tambridge.checkpoint")
 
-CHECKPOINT_VERSION = 2
+CHECKPOINT_VERSION = 3
 """Bumped whenever what a checkpoint holds changes; a checkpoint of another version is refused."""
 CHECKPOINT_FORMAT = "tambridge checkpoint"
 CHECKPOINT_FOLDER = "checkpoint"
@@ -224,6 +224,7 @@ def state_types() -> StateTypes:
     from tambridge.frontend.orb.features import FrameFeatures
     from tambridge.frontend.orb.frontend import _FrameRecord
     from tambridge.frontend.orb.loop_closing import LoopConsistency
+    from tambridge.frontend.orb.matching import KeypointGrid
     from tambridge.frontend.orb.slam_map import Keyframe, MapPoints, SlamMap
     from tambridge.frontend.orb.vocabulary import KeyframeDatabase
     from tambridge.frontend.pose_graph import PoseEdge
@@ -246,7 +247,7 @@ def state_types() -> StateTypes:
         return value
 
     return StateTypes(
-        records=(Keyframe, FrameFeatures, MapPoints, SlamMap, KeyframeDatabase, LoopConsistency, _FrameRecord, DenseReference,
+        records=(Keyframe, KeypointGrid, FrameFeatures, MapPoints, SlamMap, KeyframeDatabase, LoopConsistency, _FrameRecord, DenseReference,
                  Open3dKeyframe, PoseEdge, MappingView, RefinementResult, ViewImages, Candidate, ExposurePath),
         enums=(Selection,),
         codecs=(

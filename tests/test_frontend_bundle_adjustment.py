@@ -300,13 +300,15 @@ def test_depth_edges_tie_a_keyframe_to_its_segments_previous_live_keyframes(neig
     from tambridge.frontend.orb.config import OrbFrontendConfig
     from tambridge.frontend.orb.features import FrameFeatures
     from tambridge.frontend.orb.local_mapping import depth_pairs
+    from tambridge.frontend.orb.matching import build_keypoint_grid
     from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 
     term = room_depth_edge()[2]
     slam_map = SlamMap()
     for keyframe_id in range(6):
         keyframe = Keyframe(keyframe_id, keyframe_id, 0.0, np.eye(4), FrameFeatures.empty(), np.zeros(0, np.int64),
-                            segment=int(keyframe_id >= 4), depth_reference=term.reference,
+                            segment=int(keyframe_id >= 4), keypoint_grid=build_keypoint_grid(np.zeros((0, 2)), 640, 480),
+                            depth_reference=term.reference,
                             depth_samples_m=term.samples_camera_m, parent=0 if keyframe_id == 2 else -1)
         slam_map.keyframes.append(keyframe)
     config = OrbFrontendConfig(ba_dense_neighbours=neighbours)

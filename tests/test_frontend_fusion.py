@@ -1,10 +1,11 @@
-"""Point fusion's candidate search against its obvious twin."""
+"""Point fusion's bookkeeping against obvious twins: the candidate search, covisibility counts and point merges."""
 
 from types import SimpleNamespace
 
 import numpy as np
 
 from tambridge.frontend.orb.local_mapping import points_not_seen_by
+from tambridge.frontend.orb.slam_map import SlamMap
 
 
 def test_points_not_seen_by_a_keyframe_are_numpys_set_difference():
@@ -20,3 +21,75 @@ def test_points_not_seen_by_a_keyframe_are_numpys_set_difference():
         expected = np.setdiff1d(point_ids, keyframe.point_ids)
         assert candidates.dtype == np.int64
         np.testing.assert_array_equal(candidates, expected)
+
+
+def _random_map(rng: np.random.Generator, keyframe_count: int, point_count: int) -> SlamMap:
+    """Keyframes that each see a random subset of the points once (-1 elsewhere), a tenth of the points bad."""
+    slam_map = SlamMap()
+    slam_map.points.add(rng.normal(size=(point_count, 3)) + [0.0, 0.0, 3.0], np.zeros((point_count, 32), np.uint8),
+                        np.zeros((point_count, 3), np.uint8), np.zeros(3), np.zeros(point_count, np.int64), 0, 1.2, 8)
+    slam_map.points.bad[rng.choice(point_count, point_count // 10, replace=False)] = True
+    for keyframe_id in range(keyframe_count):
+        keypoints = int(rng.integers(0, 60))
+        seen = rng.choice(point_count, int(rng.integers(0, keypoints + 1)), replace=False)
+        point_ids = np.full(keypoints, -1, np.int64)
+        point_ids[rng.choice(keypoints, seen.size, replace=False)] = seen
+        slam_map.keyframes.append(SimpleNamespace(id=keyframe_id, point_ids=point_ids, covisibility={}))
+    return slam_map
+
+
+def test_covisibility_of_several_keyframes_is_their_shared_good_points_each_recounted_in_turn():
+    """Recounting keyframes together gives what recounting each alone, in the same order, gives; every weight is the
+    number of good points the two keyframes share (set intersection), and the last keyframe recounted keeps its pairs
+    of at least ``min_shared``, or its best one where none reaches it."""
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        seed, keyframe_count = int(rng.integers(1 << 30)), int(rng.integers(1, 12))
+        together, alone = (_random_map(np.random.default_rng(seed), keyframe_count, 80) for _ in range(2))
+        chosen = [int(i) for i in rng.permutation(len(together.keyframes))[: int(rng.integers(1, 6))]]
+        min_shared = int(rng.integers(1, 6))
+        together.update_covisibility([together.keyframes[i] for i in chosen], min_shared)
+        for i in chosen:
+            alone.update_covisibility([alone.keyframes[i]], min_shared)
+        assert [k.covisibility for k in together.keyframes] == [k.covisibility for k in alone.keyframes]
+        good = [set(k.point_ids[together.points.good(k.point_ids)].tolist()) for k in together.keyframes]
+        for i in chosen:
+            shared = {j: len(good[i] & good[j]) for j in range(len(good)) if j != i and good[i] & good[j]}
+            kept = {j: w for j, w in shared.items() if w >= min_shared}
+            if not kept and shared:
+                best = max(shared.values())
+                kept = {min(j for j, w in shared.items() if w == best): best}
+            # A keyframe recounted later redoes its pairs with the earlier ones: only the last is exactly its own count.
+            covisibility = together.keyframes[i].covisibility
+            assert all(shared[j] == w for j, w in covisibility.items())
+            if i == chosen[-1]:
+                assert covisibility == kept
+
+def test_merged_points_leave_each_keyframe_seeing_a_point_once_and_the_others_untouched():
+    """``replace_points`` against a twin that renames ids one keypoint at a time: each keyframe sees a survivor
+    where it saw a replaced point, keeps the first keypoint of a point it now sees twice, and a keyframe that saw no
+    replaced point keeps its ids as they were; the replaced points go bad and observations are recounted."""
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        slam_map = _random_map(rng, int(rng.integers(1, 10)), 80)
+        old = rng.choice(80, int(rng.integers(1, 20)), replace=False)
+        new = rng.choice(np.setdiff1d(np.arange(80), old), old.size)
+        survivor = dict(zip(old.tolist(), new.tolist()))
+        expected = []
+        for keyframe in slam_map.keyframes:
+            ids, seen = keyframe.point_ids.tolist(), set()
+            for index, point in enumerate(ids):
+                if point < 0:
+                    continue
+                point = survivor.get(point, point)
+                ids[index] = -1 if point in seen else point
+                seen.add(point)
+            expected.append(np.array(ids, np.int64))
+        untouched = [keyframe.point_ids for keyframe in slam_map.keyframes if not np.isin(keyframe.point_ids, old).any()]
+        slam_map.replace_points(old, new)
+        for keyframe, ids in zip(slam_map.keyframes, expected):
+            np.testing.assert_array_equal(keyframe.point_ids, ids)
+        assert all(any(keyframe.point_ids is ids for keyframe in slam_map.keyframes) for ids in untouched)
+        assert slam_map.points.bad[old].all()
+        observed = np.concatenate([keyframe.point_ids for keyframe in slam_map.keyframes])
+        np.testing.assert_array_equal(slam_map.points.observations[:80], np.bincount(observed[observed >= 0], minlength=80))

@@ -277,7 +277,8 @@ def test_map_points_take_the_distinctive_descriptor_of_their_observations():
         descriptors = np.concatenate([descriptor, centres[1:]])[:n]
         features = FrameFeatures(np.zeros((n, 2)), np.zeros(n, np.int32), descriptors, np.ones(n), np.zeros((n, 3)),
                                  np.zeros((n, 3), np.uint8))
-        slam_map.keyframes.append(Keyframe(keyframe_id, keyframe_id, 0.0, np.eye(4), features, ids[:n].copy(), 0))
+        slam_map.keyframes.append(Keyframe(keyframe_id, keyframe_id, 0.0, np.eye(4), features, ids[:n].copy(), 0,
+                                           build_keypoint_grid(features.keypoints_px, 640, 480)))
     chosen_ids, descriptors = slam_map.distinctive_descriptors(ids)
     np.testing.assert_array_equal(chosen_ids, ids)
     np.testing.assert_array_equal(descriptors, centres)

@@ -470,8 +470,7 @@ class OrbFrontend:
             tried = [k for k in reversed(self.map.keyframes) if k.segment == segment and not k.culled][:JOIN_KEYFRAMES]
             with self._timed("loop"):
                 for keyframe in tried:
-                    grid = build_keypoint_grid(keyframe.features.keypoints_px, self.camera.width, self.camera.height)
-                    fix = localise(self.map, keyframe.features, grid, point_ids, self.camera, config,
+                    fix = localise(self.map, keyframe.features, keyframe.keypoint_grid, point_ids, self.camera, config,
                                    config.relocalisation_min_inliers, config.relocalisation_ransac_min_inliers)
                     if fix is None:
                         continue
@@ -664,6 +663,7 @@ class OrbFrontend:
             features=features,
             point_ids=np.full(len(features), -1, np.int64),
             segment=self._segment,
+            keypoint_grid=build_keypoint_grid(features.keypoints_px, self.camera.width, self.camera.height),
         )
         # Matched points may have gone bad (culled or merged) while tracking waited for the mapping thread.
         good = self.map.points.good(fix.point_ids)
@@ -683,7 +683,7 @@ class OrbFrontend:
                                                            config.max_depth_m)
                 keyframe.depth_samples_m = dense_samples(frame.depth_m, self.K, config.dense_sample_stride_px,
                                                          config.min_depth_m, config.max_depth_m)
-        self.map.update_covisibility(keyframe, self.config.covisibility_min_shared)
+        self.map.update_covisibility([keyframe], self.config.covisibility_min_shared)
         self._reference = keyframe
         self._frames_since_keyframe = 0
         self._keyframe_requested = False

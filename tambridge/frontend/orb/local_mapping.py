@@ -11,7 +11,6 @@ from tambridge.camera import Camera
 from tambridge.frontend.orb.bundle_adjustment import BundleOptions, BundleProblem, DepthPair, solve_bundle_adjustment
 from tambridge.frontend.orb.dense_depth import DenseTerm
 from tambridge.frontend.orb.map_matching import match_map_points
-from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.orb.reprojection import rgbd_observations
 from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 from tambridge.frontend.orb.config import OrbFrontendConfig
@@ -49,9 +48,8 @@ def fuse_matches(
     candidates = points_not_seen_by(slam_map, keyframe, point_ids)
     if candidates.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    grid = build_keypoint_grid(keyframe.features.keypoints_px, camera.width, camera.height)
-    keypoints, ids, _ = match_map_points(slam_map, candidates, keyframe.camera_from_world, keyframe.features, grid,
-                                         camera, config, FUSE_RADIUS_PX)
+    keypoints, ids, _ = match_map_points(slam_map, candidates, keyframe.camera_from_world, keyframe.features,
+                                         keyframe.keypoint_grid, camera, config, FUSE_RADIUS_PX)
     return keypoints, ids
 
 
@@ -123,8 +121,7 @@ def fuse_with_neighbours(slam_map: SlamMap, keyframe: Keyframe, camera: Camera, 
             news += n
         slam_map.replace_points(np.array(olds, np.int64), np.array(news, np.int64))
         slam_map.recount_observations()
-        for k in [keyframe] + neighbours:
-            slam_map.update_covisibility(k, config.covisibility_min_shared)
+        slam_map.update_covisibility([keyframe] + neighbours, config.covisibility_min_shared)
     if config.distinctive_descriptors:
         _update_descriptors(slam_map, slam_map.points_of([keyframe] + neighbours), lock)
 
@@ -323,8 +320,7 @@ def local_bundle_adjustment(
     point_ids = slam_map.points_of(local)
     dropped = adjust_bundle(slam_map, local, point_ids, fixed, K, config, config.local_ba_iterations, lock)
     with lock:
-        for k in local:
-            slam_map.update_covisibility(k, config.covisibility_min_shared)
+        slam_map.update_covisibility(local, config.covisibility_min_shared)
     return dropped
 
 

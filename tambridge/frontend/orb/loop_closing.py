@@ -20,7 +20,6 @@ import numpy as np
 from tambridge.camera import Camera
 from tambridge.frontend.orb.local_mapping import fuse_points
 from tambridge.frontend.orb.map_matching import PoseFix, localise
-from tambridge.frontend.orb.matching import build_keypoint_grid
 from tambridge.frontend.pose_graph import PoseEdge, optimise_pose_graph
 from tambridge.frontend.orb.slam_map import Keyframe, SlamMap
 from tambridge.frontend.orb.config import OrbFrontendConfig
@@ -125,19 +124,18 @@ def detect_loop(
     outcomes.update((c, LoopOutcome.not_tried) for c in candidates)
     inliers: dict[int, int] = {}
     detection = None
-    grid = build_keypoint_grid(keyframe.features.keypoints_px, camera.width, camera.height)
     for candidate_id in candidates[: config.loop_candidates]:
         candidate = slam_map.keyframes[candidate_id]
         group = [candidate] + [slam_map.keyframes[i] for i in candidate.best_covisible(LOOP_GROUP_NEIGHBOURS)]
         group_points = slam_map.points_of([k for k in group if k.id not in connected])
-        fix = localise(slam_map, keyframe.features, grid, group_points, camera, config, config.loop_min_inliers)
+        fix = localise(slam_map, keyframe.features, keyframe.keypoint_grid, group_points, camera, config, config.loop_min_inliers)
         if fix is not None and fix.inlier_count >= config.loop_min_inliers:
             outcomes[candidate_id], inliers[candidate_id] = LoopOutcome.accepted, fix.inlier_count
             detection = LoopDetection(candidate_id, fix)
             break
         outcomes[candidate_id] = LoopOutcome.unverified
         if trace is not None:
-            probe = localise(slam_map, keyframe.features, grid, group_points, camera, config, 6)
+            probe = localise(slam_map, keyframe.features, keyframe.keypoint_grid, group_points, camera, config, 6)
             inliers[candidate_id] = 0 if probe is None else probe.inlier_count
     if trace is not None:
         trace.append(LoopQueryTrace(keyframe.id, keyframe.frame_index, float(min_score), [
@@ -203,8 +201,8 @@ def close_loop(slam_map: SlamMap, keyframe: Keyframe, loop: LoopDetection, camer
         news += n
     slam_map.replace_points(np.array(olds, np.int64), np.array(news, np.int64))
     slam_map.recount_observations()
-    for k in set(touched) | {k.id for k in group}:
-        slam_map.update_covisibility(slam_map.keyframes[k], config.covisibility_min_shared)
+    slam_map.update_covisibility([slam_map.keyframes[k] for k in set(touched) | {k.id for k in group}],
+                                 config.covisibility_min_shared)
     shift_m = float(np.linalg.norm(correction[:3, 3]))
     logger.info("loop closed: keyframe %d (frame %d) revisits keyframe %d (frame %d), %d inliers, correction %.3f m",
                 keyframe.id, keyframe.frame_index, candidate.id, candidate.frame_index, loop.fix.inlier_count, shift_m)

@@ -16,15 +16,16 @@ import dataclasses
 import numpy as np
 
 from tambridge.frontend.orb.dense_depth import DenseReference
-from tambridge.frontend.orb.matching import distinctive_indices
+from tambridge.frontend.orb.matching import KeypointGrid, distinctive_indices
 from tambridge.frontend.orb.features import FrameFeatures
 from tambridge.geometry import inverse
 
 
 @dataclasses.dataclass
 class Keyframe:
-    """A keyframe: its features, the map point id per keypoint (N,) int64 (-1 none), bag-of-words vector,
-    covisibility weights (other keyframe id -> shared points) and the map segment it belongs to.
+    """A keyframe: its features, the map point id per keypoint (N,) int64 (-1 none), the map segment it belongs to,
+    its keypoints indexed for radius searches (fusion and loop closing search each keyframe many times),
+    bag-of-words vector and covisibility weights (other keyframe id -> shared points).
 
     A culled keyframe has ``parent`` >= 0, the live keyframe it follows, and ``parent_from_camera`` (4, 4); its
     ``point_ids`` are all -1 and its ``covisibility`` is empty.
@@ -37,6 +38,7 @@ class Keyframe:
     features: FrameFeatures
     point_ids: np.ndarray
     segment: int
+    keypoint_grid: KeypointGrid
     bow_words: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, np.int64))
     bow_weights: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     covisibility: dict[int, int] = dataclasses.field(default_factory=dict)
@@ -188,30 +190,33 @@ class SlamMap:
         ids, group_start = np.unique(observed, return_index=True)
         return ids, descriptors[distinctive_indices(descriptors, np.append(group_start, len(observed)))]
 
-    def update_covisibility(self, keyframe: Keyframe, min_shared: int) -> None:
-        """Recount the points this keyframe shares with every other keyframe; keep pairs with >= ``min_shared``
-        (or the single best pair if none reaches it, so the graph stays connected)."""
-        mask = np.zeros(self.points.count + 1, bool)  # the last entry stands for "no point" (id -1)
-        mask[self.good_point_ids(keyframe)] = True
-        others = [other for other in self.keyframes if other.id != keyframe.id]
-        if not others:
-            keyframe.covisibility = {}
+    def update_covisibility(self, keyframes: list[Keyframe], min_shared: int) -> None:
+        """For each of ``keyframes`` in turn, recount the points it shares with every other keyframe; keep pairs with
+        >= ``min_shared`` (or the single best pair if none reaches it, so the graph stays connected). The map's
+        observations are gathered once for all of them: fusion and local BA recount ten keyframes or more."""
+        if len(self.keyframes) < 2:
+            for keyframe in keyframes:
+                keyframe.covisibility = {}
             return
-        owner = np.repeat(np.arange(len(others)), [len(other.point_ids) for other in others])
-        hits = mask[np.concatenate([other.point_ids for other in others])]
-        shared = np.bincount(owner[hits], minlength=len(others))
-        counts = {}
-        for other, count in zip(others, shared.tolist()):
-            other.covisibility.pop(keyframe.id, None)
-            if count > 0:
-                counts[other.id] = count
-        kept = {k: w for k, w in counts.items() if w >= min_shared}
-        if not kept and counts:
-            best = max(counts, key=counts.get)
-            kept = {best: counts[best]}
-        keyframe.covisibility = kept
-        for other_id, weight in kept.items():
-            self.keyframes[other_id].covisibility[keyframe.id] = weight
+        owner = np.repeat(np.arange(len(self.keyframes)), [len(other.point_ids) for other in self.keyframes])
+        observed = np.concatenate([other.point_ids for other in self.keyframes])
+        for keyframe in keyframes:
+            mask = np.zeros(self.points.count + 1, bool)  # the last entry stands for "no point" (id -1)
+            mask[self.good_point_ids(keyframe)] = True
+            shared = np.bincount(owner[mask[observed]], minlength=len(self.keyframes))
+            shared[keyframe.id] = 0
+            counts = {}
+            for other, count in zip(self.keyframes, shared.tolist()):
+                other.covisibility.pop(keyframe.id, None)
+                if count > 0:
+                    counts[other.id] = count
+            kept = {k: w for k, w in counts.items() if w >= min_shared}
+            if not kept and counts:
+                best = max(counts, key=counts.get)
+                kept = {best: counts[best]}
+            keyframe.covisibility = kept
+            for other_id, weight in kept.items():
+                self.keyframes[other_id].covisibility[keyframe.id] = weight
 
     @staticmethod
     def drop_duplicate_observations(keyframe: Keyframe) -> None:
@@ -244,10 +249,11 @@ class SlamMap:
         for keyframe in self.keyframes:
             ids = keyframe.point_ids
             valid = np.flatnonzero(ids >= 0)
-            if valid.size == 0:
-                continue
-            ids[valid] = remap[ids[valid]]
-            self.drop_duplicate_observations(keyframe)
+            merged = remap[ids[valid]]
+            # Only a keyframe that saw a replaced point can now see a point twice.
+            if (merged != ids[valid]).any():
+                ids[valid] = merged
+                self.drop_duplicate_observations(keyframe)
         self.points.bad[old_ids] = True
         self.recount_observations()
 
