@@ -107,9 +107,11 @@ def test_a_run_on_a_blurred_sequence_reports_scores_against_sharp_frames_and_inp
     config = Config()
     config.frontend.kind = "open3d"  # keyframes: the frames between them are novel views
     config.mesh.enabled = False
-    # The scores' bookkeeping is under test, not the map: no blur-aware mapping, no sharpening pass.
+    # The scores' bookkeeping is under test, not the map: no blur-aware mapping, no sharpening pass, few Adam steps.
     config.bridge.blur_exposure_s = 0.0
     config.mapper.sharp_iterations_per_view = 0
+    config.mapper.iterations = 4
+    config.mapper.final_iterations_per_view = 1
     config.evaluation.novel_view_every = 1
     reconstruct(tmp_path / "seq", tmp_path / "out", config, progress=False)
     rendering = read_metrics(tmp_path / "out" / "metrics.json").map.rendering

@@ -21,8 +21,10 @@ from tambridge.trajectory import read_tum_trajectory
 @pytest.mark.slow
 def test_reconstruct_writes_outputs_and_a_real_ate(synthetic_sequence_dir, tmp_path):
     out = tmp_path / "out"
+    # Tracking only: the test is about the run's files and its trajectory (the bridge leaves the poses by default).
     result = CliRunner().invoke(
-        main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--set", "frontend.kind=open3d_f2f"]
+        main, ["reconstruct", str(synthetic_sequence_dir), "-o", str(out), "--quiet", "--set", "frontend.kind=open3d_f2f",
+               "--set", "mapper.enabled=false", "--set", "mesh.enabled=false"]
     )
     assert result.exit_code == 0, result.output
     assert "ATE RMSE" in result.output
@@ -441,10 +443,13 @@ def test_demo_replaces_only_its_own_run_and_refuses_others_before_rendering(tmp_
     from tests.test_report import _metrics as run_metrics
 
     demo = ["demo", "--frames", "30", "--size", "160x120", "--set", "mesh.enabled=false"]
-    for _ in range(2):  # the second replaces the first
-        result = CliRunner().invoke(main, [*demo, "-o", str(tmp_path / "demo")])
+    # The second replaces the first; it tracks only (no Gaussian map), so the first run's splats must be gone after it.
+    for extra in ([], ["--set", "mapper.enabled=false"]):
+        result = CliRunner().invoke(main, [*demo, *extra, "-o", str(tmp_path / "demo")])
         assert result.exit_code == 0, result.output
         assert read_metrics(tmp_path / "demo" / "metrics.json").trajectory.ate_rmse_m < 0.03
+        assert (tmp_path / "demo" / "splats.ply").is_file() == (not extra)
+    assert read_metrics(tmp_path / "demo" / "metrics.json").map is None
     other = tmp_path / "other"
     with RunFolder(other, Start.NEW, ["metrics.json"]):
         write_metrics(other / "metrics.json", run_metrics(sequence="/data/my_sequence"))

@@ -191,12 +191,24 @@ FAST = ("frontend.kind=open3d_f2f", "mapper.iterations=4", "bridge.iterations=3"
         "mapper.final_iterations_per_view=1", "input.max_frames=8")
 
 
+@pytest.fixture(scope="module")
+def first_camera_run(tilted_sequence, tmp_path_factory):
+    """The tilted loop reconstructed with FAST in the first camera's frame: (its folder, the run's result). Such a run
+    reads no accelerometer (test_a_bad_accelerometer_file_stops_the_run_before_any_output), so both cases below
+    compare against this one run."""
+    first = tmp_path_factory.mktemp("first_camera") / "first"
+    result = reconstruct(tilted_sequence[0], first, load_config(None, (*FAST, "export.world=first_camera")),
+                         progress=False)
+    return first, result
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("with_accelerometer", [True, False], ids=["accelerometer", "floor_plane"])
-def test_run_writes_every_file_in_one_upright_world(tilted_sequence, tmp_path, with_accelerometer):
+def test_run_writes_every_file_in_one_upright_world(tilted_sequence, first_camera_run, tmp_path, with_accelerometer):
     """Up within a degree of the truth's by either method; trajectory.txt, keyframes.txt, splats.ply and mesh.ply are
     the first-camera files rotated by metrics.json's transform; ATE and RPE do not change."""
     source, truth = tilted_sequence
+    first_dir, first = first_camera_run
     folder = tmp_path / "room"
     folder.mkdir()
     for item in source.iterdir():
@@ -204,8 +216,6 @@ def test_run_writes_every_file_in_one_upright_world(tilted_sequence, tmp_path, w
     if with_accelerometer:
         write_accelerometer(folder / "accelerometer.txt", kinect_samples(truth))
     upright = reconstruct(folder, tmp_path / "upright", load_config(None, FAST), progress=False)
-    first = reconstruct(folder, tmp_path / "first", load_config(None, (*FAST, "export.world=first_camera")),
-                        progress=False)
     metrics = read_metrics(tmp_path / "upright" / "metrics.json")
     assert metrics.world.frame == "upright"
     # With the accelerometer the room's floor, which lies near its up, levels the world.
@@ -214,21 +224,21 @@ def test_run_writes_every_file_in_one_upright_world(tilted_sequence, tmp_path, w
     up_first_camera = transform[2, :3]
     # The run's first pose is close to (not exactly) the identity: compare in the truth's first camera.
     assert angle_deg(up_first_camera, true_up_in_first_camera(truth)) < 1.0
-    first_metrics = read_metrics(tmp_path / "first" / "metrics.json")
+    first_metrics = read_metrics(first_dir / "metrics.json")
     assert first_metrics.world.up_source == "first_camera"
     np.testing.assert_array_equal(first_metrics.world.upright_from_first_camera, np.eye(4))
 
     for name in ("trajectory.txt", "keyframes.txt"):
         np.testing.assert_allclose(read_tum_trajectory(tmp_path / "upright" / name).world_from_camera,
-                                   transform @ read_tum_trajectory(tmp_path / "first" / name).world_from_camera,
+                                   transform @ read_tum_trajectory(first_dir / name).world_from_camera,
                                    atol=1e-6)
     np.testing.assert_allclose(upright.trajectory.world_from_camera, transform @ first.trajectory.world_from_camera,
                                atol=1e-12)
-    splats_upright, splats_first = (load_ply(tmp_path / run / "splats.ply") for run in ("upright", "first"))
+    splats_upright, splats_first = (load_ply(run / "splats.ply") for run in (tmp_path / "upright", first_dir))
     np.testing.assert_allclose(splats_upright.means_m.numpy(), splats_first.means_m.numpy() @ transform[:3, :3].T,
                                atol=1e-5)
     np.testing.assert_array_equal(splats_upright.rgb.numpy(), splats_first.rgb.numpy())
-    mesh_upright, mesh_first = (read_mesh(tmp_path / run / "mesh.ply") for run in ("upright", "first"))
+    mesh_upright, mesh_first = (read_mesh(run / "mesh.ply") for run in (tmp_path / "upright", first_dir))
     # Open3D's hashed grid lists the vertices in no fixed order: compare them as point sets.
     assert len(mesh_upright.vertices) == len(mesh_first.vertices) > 1000
     distances, _ = cKDTree(mesh_upright.vertices).query(mesh_first.vertices @ transform[:3, :3].T)
