@@ -1,14 +1,51 @@
 """Shared fixtures: small synthetic sequences with exact ground truth (no real data needed).
 
-``python -m pytest -m "not slow"`` runs the quick suite (under a minute on 2 cores); ``python -m pytest`` runs
+``python -m pytest -m "not slow"`` runs the quick suite (about 3 minutes on 2 cores); ``python -m pytest`` runs
 everything (under 10 minutes). Mark a test ``@pytest.mark.slow`` when it takes seconds (see setup.cfg).
 """
 
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import pytest
 
 from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
+
+ROOT = Path(__file__).resolve().parents[1]
+_kernel_warm_up: tuple[subprocess.Popen, Path] | None = None
+
+
+def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The modules without slow tests first, each module's tests kept together and in order: the kernel warm-up
+    (below) compiles while they run, and the whole runs of the slow modules then find the kernels compiled."""
+    slow_modules = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.nodeid.split("::")[0] in slow_modules)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Where slow tests are selected, a second process compiles numba's kernels into its on-disk cache (a short demo
+    run) while the first tests run on the other core: on a clean clone compiling takes minutes of one core, which the
+    whole runs would otherwise wait for where each first needs a kernel."""
+    global _kernel_warm_up
+    if not any(item.get_closest_marker("slow") for item in session.items):
+        return
+    folder = Path(tempfile.mkdtemp(prefix="tambridge_kernels_"))
+    process = subprocess.Popen(
+        [sys.executable, str(ROOT / "cli.py"), "demo", "--frames", "20", "--size", "160x120", "-o", str(folder / "demo")],
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    _kernel_warm_up = process, folder
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    if _kernel_warm_up is not None:
+        process, folder = _kernel_warm_up
+        process.kill()
+        process.wait()
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")
