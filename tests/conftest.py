@@ -27,17 +27,16 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
-    """Where slow tests are selected, a second process compiles numba's kernels into its on-disk cache (a short demo
-    run) while the first tests run on the other core: on a clean clone compiling takes minutes of one core, which the
-    whole runs would otherwise wait for where each first needs a kernel."""
+    """Where slow tests are selected, a second process compiles numba's kernels into its on-disk cache
+    (tests/kernel_warm_up.py) while the first tests run on the other core: on a clean clone compiling takes minutes of
+    one core, which the whole runs would otherwise wait for where each first needs a kernel."""
     global _kernel_warm_up
-    if not any(item.get_closest_marker("slow") for item in session.items):
-        return
-    folder = Path(tempfile.mkdtemp(prefix="tambridge_kernels_"))
-    process = subprocess.Popen(
-        [sys.executable, str(ROOT / "cli.py"), "demo", "--frames", "20", "--size", "160x120", "-o", str(folder / "demo")],
-        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=dict(os.environ, PYTHONPATH=str(ROOT)))
-    _kernel_warm_up = process, folder
+    if any(item.get_closest_marker("slow") for item in session.items):
+        folder = Path(tempfile.mkdtemp(prefix="tambridge_kernels_"))
+        process = subprocess.Popen([sys.executable, "-m", "tests.kernel_warm_up", str(folder)], cwd=ROOT,
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                   env=dict(os.environ, PYTHONPATH=str(ROOT)))
+        _kernel_warm_up = process, folder
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
