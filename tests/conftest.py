@@ -14,29 +14,46 @@ from pathlib import Path
 import pytest
 
 from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
+from tests.numba_cache_lock import serialise_numba_cache_saves
 
 ROOT = Path(__file__).resolve().parents[1]
+KERNEL_WARM_UP_LIMIT_S = 300
+KERNEL_WARM_UP_MIN_SLOW_TESTS = 10  # below, the warm-up would cost a developer running a few tests more than it saves
 _kernel_warm_up: tuple[subprocess.Popen, Path] | None = None
+_slow_modules: set[str] = set()
+
+# The kernel warm-up compiles into the same cache while the first tests run.
+serialise_numba_cache_saves()
 
 
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
     """The modules without slow tests first, each module's tests kept together and in order: the kernel warm-up
     (below) compiles while they run, and the whole runs of the slow modules then find the kernels compiled."""
-    slow_modules = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.nodeid.split("::")[0] in slow_modules)
+    _slow_modules.update(item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow"))
+    items.sort(key=lambda item: item.nodeid.split("::")[0] in _slow_modules)
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
-    """Where slow tests are selected, a second process compiles numba's kernels into its on-disk cache
+    """Where many slow tests are selected, a second process compiles numba's kernels into its on-disk cache
     (tests/kernel_warm_up.py) while the first tests run on the other core: on a clean clone compiling takes minutes of
     one core, which the whole runs would otherwise wait for where each first needs a kernel."""
     global _kernel_warm_up
-    if any(item.get_closest_marker("slow") for item in session.items):
+    if sum(item.get_closest_marker("slow") is not None for item in session.items) >= KERNEL_WARM_UP_MIN_SLOW_TESTS:
         folder = Path(tempfile.mkdtemp(prefix="tambridge_kernels_"))
         process = subprocess.Popen([sys.executable, "-m", "tests.kernel_warm_up", str(folder)], cwd=ROOT,
                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                    env=dict(os.environ, PYTHONPATH=str(ROOT)))
         _kernel_warm_up = process, folder
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """The slow modules' whole runs start once the warm-up has finished: their subprocesses save into numba's cache
+    without its lock."""
+    if _kernel_warm_up is not None and item.nodeid.split("::")[0] in _slow_modules:
+        try:
+            _kernel_warm_up[0].wait(timeout=KERNEL_WARM_UP_LIMIT_S)
+        except subprocess.TimeoutExpired:
+            _kernel_warm_up[0].kill()
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:

@@ -12,11 +12,13 @@ from cli import main as cli
 from tambridge.gaussians.losses import ssim
 from tambridge.geometry import look_at
 from tests.test_rasterizer import camera_of, random_gaussians, requiring_grad, scalar_loss
+from tests.numba_cache_lock import serialise_numba_cache_saves
 from tests.test_ssim_kernel import image_pair
 
 
 def main(folder: Path) -> None:
     """A demo run into ``folder``, then float64 renders, with and without a pose twist, and SSIM, with gradients."""
+    serialise_numba_cache_saves()
     cli(["demo", "--frames", "20", "--size", "160x120", "-o", str(folder / "demo")], standalone_mode=False)
     camera = camera_of(24, 18)
     world_from_camera = look_at(np.array([0.05, 0.1, -0.1]), np.array([0.0, 0.0, 2.0]), up=np.array([0.0, -1.0, 0.0]))
