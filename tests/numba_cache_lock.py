@@ -14,8 +14,12 @@ def serialise_numba_cache_saves() -> None:
     save = IndexDataCacheFile.save
 
     def locked_save(self, key, data) -> None:
-        with open(self._index_path + ".lock", "a") as lock:
+        # numba>=0.59 keeps the index's path here; should a later numba not, its saves go on unlocked as before.
+        index_path = getattr(self, "_index_path", None)
+        if index_path is None:
+            return save(self, key, data)
+        with open(index_path + ".lock", "a") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
-            save(self, key, data)
+            return save(self, key, data)
 
     IndexDataCacheFile.save = locked_save
