@@ -161,7 +161,7 @@ class OrbFrontendConfig:
     loop_consistency: int = setting(3, "a loop candidate must have been one for this many keyframes before (0: any)",
                                     NON_NEGATIVE)
     global_ba: bool = setting(True, "global bundle adjustment once the last frame is tracked")
-    global_ba_iterations: int = setting(10, "LM steps of global BA, rejected ones included", NON_NEGATIVE)
+    global_ba_iterations: int = setting(5, "LM steps of global BA, rejected ones included", NON_NEGATIVE)
     # Inline keyframe work is deterministic; the thread overlaps it with tracking.
     mapping_thread: bool = setting(True, "keyframe work (fusion, local BA, loop closing) in a background thread "
                                          "(false: inline)")
