@@ -247,8 +247,9 @@ def state_types() -> StateTypes:
         return value
 
     return StateTypes(
-        records=(Keyframe, KeypointGrid, FrameFeatures, MapPoints, SlamMap, KeyframeDatabase, LoopConsistency, _FrameRecord, DenseReference,
-                 Open3dKeyframe, PoseEdge, MappingView, RefinementResult, ViewImages, Candidate, ExposurePath),
+        records=(Keyframe, KeypointGrid, FrameFeatures, MapPoints, SlamMap, KeyframeDatabase, LoopConsistency,
+                 _FrameRecord, DenseReference, Open3dKeyframe, PoseEdge, MappingView, RefinementResult, ViewImages,
+                 Candidate, ExposurePath),
         enums=(Selection,),
         codecs=(
             StateCodec(ViewExposure, ViewExposure.state_dict, ViewExposure.from_state_dict),

@@ -128,7 +128,8 @@ def detect_loop(
         candidate = slam_map.keyframes[candidate_id]
         group = [candidate] + [slam_map.keyframes[i] for i in candidate.best_covisible(LOOP_GROUP_NEIGHBOURS)]
         group_points = slam_map.points_of([k for k in group if k.id not in connected])
-        fix = localise(slam_map, keyframe.features, keyframe.keypoint_grid, group_points, camera, config, config.loop_min_inliers)
+        fix = localise(slam_map, keyframe.features, keyframe.keypoint_grid, group_points, camera, config,
+                       config.loop_min_inliers)
         if fix is not None and fix.inlier_count >= config.loop_min_inliers:
             outcomes[candidate_id], inliers[candidate_id] = LoopOutcome.accepted, fix.inlier_count
             detection = LoopDetection(candidate_id, fix)
