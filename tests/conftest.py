@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 KERNEL_WARM_UP_LIMIT_S = 300
 KERNEL_WARM_UP_MIN_SLOW_TESTS = 10  # below, the warm-up would cost a developer running a few tests more than it saves
 _kernel_warm_up: tuple[subprocess.Popen, Path] | None = None
-_slow_modules: set[str] = set()
+_slow_modules: set[Path] = set()
 
 # The kernel warm-up compiles into the same cache while the first tests run.
 serialise_numba_cache_saves()
@@ -29,8 +29,8 @@ serialise_numba_cache_saves()
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
     """The modules without slow tests first, each module's tests kept together and in order: the kernel warm-up
     (below) compiles while they run, and the whole runs of the slow modules then find the kernels compiled."""
-    _slow_modules.update(item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow"))
-    items.sort(key=lambda item: item.nodeid.split("::")[0] in _slow_modules)
+    _slow_modules.update(item.path for item in items if item.get_closest_marker("slow"))
+    items.sort(key=lambda item: item.path in _slow_modules)
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
@@ -49,7 +49,7 @@ def pytest_collection_finish(session: pytest.Session) -> None:
 def pytest_runtest_setup(item: pytest.Item) -> None:
     """The slow modules' whole runs start once the warm-up has finished: their subprocesses save into numba's cache
     without its lock."""
-    if _kernel_warm_up is not None and item.nodeid.split("::")[0] in _slow_modules:
+    if _kernel_warm_up is not None and item.path in _slow_modules:
         try:
             _kernel_warm_up[0].wait(timeout=KERNEL_WARM_UP_LIMIT_S)
         except subprocess.TimeoutExpired:

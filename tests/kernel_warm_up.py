@@ -11,8 +11,8 @@ import torch
 from cli import main as cli
 from tambridge.gaussians.losses import ssim
 from tambridge.geometry import look_at
-from tests.test_rasterizer import camera_of, random_gaussians, requiring_grad, scalar_loss
 from tests.numba_cache_lock import serialise_numba_cache_saves
+from tests.test_rasterizer import camera_of, random_gaussians, requiring_grad, scalar_loss
 from tests.test_ssim_kernel import image_pair
 
 
