@@ -101,3 +101,11 @@ def test_merged_points_leave_each_keyframe_seeing_a_point_once_and_the_others_un
         assert slam_map.points.bad[old].all()
         observed = np.concatenate([keyframe.point_ids for keyframe in slam_map.keyframes])
         np.testing.assert_array_equal(slam_map.points.observations[:80], np.bincount(observed[observed >= 0], minlength=80))
+        # With nothing to merge, observations attached since are counted all the same (fusion attaches, then merges).
+        free = np.flatnonzero(slam_map.keyframes[0].point_ids < 0)
+        unseen = np.setdiff1d(np.arange(80), slam_map.keyframes[0].point_ids)
+        if free.size and unseen.size:
+            slam_map.keyframes[0].point_ids[free[0]] = unseen[0]
+            before = slam_map.points.observations[unseen[0]]
+            slam_map.replace_points(np.zeros(0, np.int64), np.zeros(0, np.int64))
+            assert slam_map.points.observations[unseen[0]] == before + 1

@@ -120,7 +120,6 @@ def fuse_with_neighbours(slam_map: SlamMap, keyframe: Keyframe, camera: Camera, 
             olds += o
             news += n
         slam_map.replace_points(np.array(olds, np.int64), np.array(news, np.int64))
-        slam_map.recount_observations()
         slam_map.update_covisibility([keyframe] + neighbours, config.covisibility_min_shared)
     if config.distinctive_descriptors:
         _update_descriptors(slam_map, slam_map.points_of([keyframe] + neighbours), lock)

@@ -201,7 +201,6 @@ def close_loop(slam_map: SlamMap, keyframe: Keyframe, loop: LoopDetection, camer
         olds += o
         news += n
     slam_map.replace_points(np.array(olds, np.int64), np.array(news, np.int64))
-    slam_map.recount_observations()
     slam_map.update_covisibility([slam_map.keyframes[k] for k in set(touched) | {k.id for k in group}],
                                  config.covisibility_min_shared)
     shift_m = float(np.linalg.norm(correction[:3, 3]))

@@ -205,11 +205,11 @@ class SlamMap:
             mask[self.good_point_ids(keyframe)] = True
             shared = np.bincount(owner[mask[observed]], minlength=len(self.keyframes))
             shared[keyframe.id] = 0
-            counts = {}
-            for other, count in zip(self.keyframes, shared.tolist()):
-                other.covisibility.pop(keyframe.id, None)
-                if count > 0:
-                    counts[other.id] = count
+            # Pairs are kept both ways, so the keyframes that hold this one's old pair are its old partners.
+            for other_id in keyframe.covisibility:
+                self.keyframes[other_id].covisibility.pop(keyframe.id, None)
+            partners = np.flatnonzero(shared)
+            counts = dict(zip(partners.tolist(), shared[partners].tolist()))
             kept = {k: w for k, w in counts.items() if w >= min_shared}
             if not kept and counts:
                 best = max(counts, key=counts.get)
@@ -234,12 +234,14 @@ class SlamMap:
 
     def replace_points(self, old_ids: np.ndarray, new_ids: np.ndarray) -> None:
         """Merge duplicates: every observation of ``old_ids[i]`` becomes one of ``new_ids[i]``; old points go bad.
+        Then every point's observations are recounted, with no merge too (fusion attaches new observations before).
 
         A keyframe that ends up seeing the same point at two keypoints keeps the first.
         """
         keep = old_ids != new_ids
         old_ids, new_ids = old_ids[keep], new_ids[keep]
         if len(old_ids) == 0:
+            self.recount_observations()
             return
         remap = np.arange(self.points.count)
         remap[old_ids] = new_ids
