@@ -44,6 +44,7 @@ from tambridge.export.world import WorldFrame, find_world
 from tambridge.files import atomic_write_text
 from tambridge.frontend.contract import Frontend, FrontendResult
 from tambridge.frontend.factory import make_frontend
+from tambridge.frontend.smoothing import smoothed_result
 from tambridge.io.prefetch import FramePrefetcher
 from tambridge.io.tum import MAX_ASSOCIATION_DIFFERENCE_S, RgbdSequence, find_accelerometer, open_sequence
 from tambridge.mapping.stage import MappingStage
@@ -179,6 +180,7 @@ def reconstruct(
                                     prefetch=config.frontend.prefetch, progress=progress, checkpoints=checkpoints,
                                     live_view=live_view, stops=stops)
             check_tracked(sequence, tracking)
+            tracking = smoothed_result(tracking, config.frontend.smoothing)
             # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
             peak_memory_tracking_mb = peak_memory_mb()
             gaussians = mesh = None

@@ -87,6 +87,20 @@ def log_se3(transform: np.ndarray) -> np.ndarray:
     return np.concatenate([v_inv @ transform[:3, 3], phi])
 
 
+def log_so3(rotations: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3), axis times angle in radians, of rotation matrices (..., 3, 3): the SO(3) logarithm
+    (the rotation part of :func:`log_se3`)."""
+    rotations = np.asarray(rotations, np.float64)
+    return Rotation.from_matrix(rotations.reshape(-1, 3, 3)).as_rotvec().reshape(rotations.shape[:-2] + (3,))
+
+
+def exp_so3(rotation_vectors: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3): the inverse of :func:`log_so3`."""
+    rotation_vectors = np.asarray(rotation_vectors, np.float64)
+    matrices = Rotation.from_rotvec(rotation_vectors.reshape(-1, 3)).as_matrix()
+    return matrices.reshape(rotation_vectors.shape[:-1] + (3, 3))
+
+
 def inverse(transform: np.ndarray) -> np.ndarray:
     """Inverse of a 4x4 rigid transform (exact, without a general matrix inverse)."""
     out = np.eye(4)

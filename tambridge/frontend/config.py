@@ -6,6 +6,7 @@ import dataclasses
 
 from tambridge.frontend.open3d.config import Open3dFrontendConfig
 from tambridge.frontend.orb.config import OrbFrontendConfig
+from tambridge.frontend.smoothing import SmoothingConfig
 from tambridge.settings import Choice, section, setting
 
 
@@ -32,3 +33,5 @@ class FrontendConfig:
                                    "frame i is tracked")
     orb: OrbFrontendConfig = section(OrbFrontendConfig, "settings of the ORB frontend")
     open3d: Open3dFrontendConfig = section(Open3dFrontendConfig, "settings of both Open3D frontends")
+    smoothing: SmoothingConfig = section(SmoothingConfig, "the final trajectory smoothed under a motion model, "
+                                                          "keyframes kept")

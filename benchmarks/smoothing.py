@@ -1,0 +1,114 @@
+"""The trajectory smoothed under a motion model (``frontend.smoothing``): nearer the ground truth, and what the map
+looks like from it.
+
+    python benchmarks/smoothing.py /work/data/rgbd_dataset_freiburg1_xyz /work/shared/data/tum_fr1_xyz_first37
+
+Each sequence is reconstructed once with the default preset (smoothing off; mesh off) in its own process, under
+benchmarks/results/runs/. Its trajectory.txt (the tracked poses) is then smoothed about the run's keyframes
+(keyframes.txt) with the default motion model, as ``--set frontend.smoothing.enabled=true`` would write it. Both
+are scored against the ground truth (SE(3) ATE, largest error, RPE per frame) and the run's splats.ply is rendered
+at both, with no exposure, at every 5th frame that is not a keyframe (full resolution; PSNR and SSIM as the run's
+as-exported scores compute them): the same map seen from the two trajectories. Prints a table and writes
+benchmarks/results/smoothing.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.machine import describe_machine  # noqa: E402
+from benchmarks.sequences import camera_file_for  # noqa: E402
+from tambridge.evaluation.exported import ExportedMap  # noqa: E402
+from tambridge.evaluation.rendering import score_frames, score_renders  # noqa: E402
+from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
+from tambridge.files import atomic_write_text  # noqa: E402
+from tambridge.frontend.smoothing import SmoothingConfig, smoothed_trajectory  # noqa: E402
+from tambridge.io.tum import open_sequence  # noqa: E402
+from tambridge.threads import TORCH_THREADS, compute_threads  # noqa: E402
+from tambridge.trajectory import read_tum_trajectory  # noqa: E402
+
+RESULT = ROOT / "benchmarks" / "results" / "smoothing.json"
+EVERY = 5
+
+
+def reconstructed(sequence: Path) -> Path:
+    """The folder of a default run of ``sequence`` (smoothing off, mesh off), made in a child process."""
+    out = ROOT / "benchmarks" / "results" / "runs" / f"smoothing__{sequence.name}"
+    camera = camera_file_for(sequence)
+    command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(sequence), "-o", str(out), "--quiet",
+               "--overwrite", "--set", "mesh.enabled=false", "--set", "frontend.smoothing.enabled=false",
+               *(["--camera", str(camera)] if camera is not None else [])]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    subprocess.run(command, check=True)
+    return out
+
+
+def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
+    """Rows for the tracked and the smoothed trajectory of one run: ground-truth errors and renders of its map."""
+    camera = camera_file_for(sequence_dir)
+    sequence = open_sequence(sequence_dir, camera_file=camera)
+    tracked = read_tum_trajectory(run_dir / "trajectory.txt")
+    keyframes = read_tum_trajectory(run_dir / "keyframes.txt")
+    fixed = np.isin(tracked.timestamps_s, keyframes.timestamps_s)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    # Lost frames, if any, were bridged: the smoother leaves them and splits its runs there only if it knows; a
+    # run with lost frames is scored as tracked throughout, which the table says.
+    smoothed = smoothed_trajectory(tracked, fixed, np.ones(len(tracked), bool), SmoothingConfig(enabled=True))
+    frames = [index for index in range(0, len(sequence), EVERY) if not fixed[index]]
+    exported = ExportedMap.from_run(run_dir, mapper=_mapper_config(run_dir))
+    rows = []
+    for name, trajectory in (("tracked (default)", tracked), ("smoothed", smoothed)):
+        errors = evaluate_trajectory(trajectory, sequence.ground_truth, align="se3")
+        at_poses = ExportedMap(exported.gaussians, trajectory.world_from_camera, exported.backend)
+        with compute_threads(TORCH_THREADS, 0):
+            rendered = score_renders(score_frames(sequence, lambda index: at_poses.render(sequence.camera, index).rgb,
+                                                  frames))
+        summary = rendered.summary()
+        rows.append({"sequence": sequence_dir.name, "trajectory": name, "frames": len(tracked),
+                     "frames_lost": metrics["frames_lost"], "keyframes": int(fixed.sum()), "rendered_frames": len(frames),
+                     "ate_cm": 100 * errors.ate_rmse_m, "max_cm": 100 * errors.ate_max_m,
+                     "rpe_cm": 100 * errors.rpe_trans_rmse_m, "rpe_deg": errors.rpe_rot_rmse_deg,
+                     "psnr_db": summary["psnr_db"], "ssim": summary["ssim"]})
+    return rows
+
+
+def _mapper_config(run_dir: Path):
+    from tambridge.config import load_config
+
+    return load_config(run_dir / "config.yaml", []).mapper
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| sequence | trajectory | ATE cm | largest cm | RPE cm / deg per frame | splats.ply at it: PSNR dB / SSIM "
+             "(frames) |", "|---|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row['sequence']} | {row['trajectory']} | {row['ate_cm']:.3f} | {row['max_cm']:.2f} | "
+                     f"{row['rpe_cm']:.3f} / {row['rpe_deg']:.3f} | {row['psnr_db']:.2f} / {row['ssim']:.3f} "
+                     f"({row['rendered_frames']}) |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("sequences", nargs="+", type=Path, help="TUM-layout folders with groundtruth.txt")
+    parser.add_argument("--output", type=Path, default=RESULT)
+    args = parser.parse_args()
+    rows = [row for sequence in args.sequences for row in scores(sequence, reconstructed(sequence))]
+    print(table(rows))
+    document = {"date": datetime.date.today().isoformat(), "machine": describe_machine(),
+                "command": " ".join(sys.argv), "rows": rows}
+    atomic_write_text(args.output, json.dumps(document, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

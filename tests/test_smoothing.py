@@ -1,0 +1,116 @@
+"""The final trajectory's smoothing (tambridge/frontend/smoothing.py): the sparse solve against its dense twin, the
+motion model's exact cases, and the error of noisy poses on a known path."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tambridge.frontend.smoothing import SmoothingConfig, smooth_path, smooth_path_reference, smoothed_trajectory
+from tambridge.geometry import exp_so3, log_so3
+from tambridge.trajectory import Trajectory
+
+
+def test_sparse_solve_equals_the_dense_least_squares_with_fixed_rows():
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        count = int(rng.integers(1, 40))
+        times_s = np.cumsum(rng.uniform(0.01, 0.2, count))
+        path = rng.normal(size=(count, int(rng.integers(1, 4))))
+        fixed = rng.random(count) < 0.3
+        sigma, acceleration_sigma = rng.uniform(0.001, 0.1), rng.uniform(0.1, 10.0)
+        smoothed = smooth_path(times_s, path, fixed, sigma, acceleration_sigma)
+        np.testing.assert_allclose(smoothed, smooth_path_reference(times_s, path, fixed, sigma, acceleration_sigma),
+                                   rtol=1e-7, atol=1e-9)
+        np.testing.assert_array_equal(smoothed[fixed], path[fixed])
+
+
+def _poses(times_s: np.ndarray, positions_m: np.ndarray, rotation_vectors: np.ndarray) -> Trajectory:
+    world_from_camera = np.tile(np.eye(4), (len(times_s), 1, 1))
+    world_from_camera[:, :3, :3] = exp_so3(rotation_vectors)
+    world_from_camera[:, :3, 3] = positions_m
+    return Trajectory(times_s, world_from_camera)
+
+
+def test_a_constant_velocity_path_at_uneven_times_is_left_as_it_is():
+    """The motion model's null space: a camera moving and turning at constant rates has no acceleration to remove."""
+    times_s = np.cumsum(np.random.default_rng(1).uniform(0.02, 0.06, 60))
+    positions = np.array([0.1, -0.2, 0.3]) + np.outer(times_s, [0.3, 0.1, -0.2])
+    turns = np.outer(times_s, [0.2, -0.5, 0.1])  # a fixed axis: the rotation vectors are linear in time
+    trajectory = _poses(times_s, positions, turns)
+    smoothed = smoothed_trajectory(trajectory, np.zeros(60, bool), np.ones(60, bool), SmoothingConfig())
+    np.testing.assert_allclose(smoothed.world_from_camera, trajectory.world_from_camera, atol=1e-9)
+
+
+def test_noisy_poses_on_a_smooth_path_move_towards_it_keyframes_and_untracked_frames_stay():
+    rng = np.random.default_rng(2)
+    times_s = np.arange(300) / 30.0
+    positions = 0.3 * np.stack([np.sin(2.0 * times_s), np.cos(1.3 * times_s), 0.5 * np.sin(0.7 * times_s)], axis=1)
+    turns = 0.4 * np.stack([np.sin(0.9 * times_s), np.sin(1.7 * times_s), np.cos(1.1 * times_s)], axis=1)
+    truth = _poses(times_s, positions, turns)
+    config = SmoothingConfig()
+    noisy = _poses(times_s, positions + rng.normal(scale=config.position_sigma_m, size=positions.shape), turns)
+    noisy.world_from_camera[:, :3, :3] = exp_so3(rng.normal(scale=np.radians(config.rotation_sigma_deg), size=(300, 3))) \
+        @ noisy.world_from_camera[:, :3, :3]
+    fixed = np.arange(300) % 8 == 0
+    tracked = np.ones(300, bool)
+    tracked[150] = False  # a lost frame: it splits the runs
+    smoothed = smoothed_trajectory(noisy, fixed, tracked, config)
+
+    def errors(trajectory):
+        position = np.linalg.norm(trajectory.world_from_camera[:, :3, 3] - positions, axis=1)
+        rotation = np.linalg.norm(log_so3(trajectory.world_from_camera[:, :3, :3]
+                                          @ np.swapaxes(truth.world_from_camera[:, :3, :3], 1, 2)), axis=1)
+        return np.sqrt(np.mean(position[~fixed] ** 2)), np.sqrt(np.mean(rotation[~fixed] ** 2))
+
+    (position_before, rotation_before), (position_after, rotation_after) = errors(noisy), errors(smoothed)
+    assert position_after < 0.6 * position_before, (position_before, position_after)
+    assert rotation_after < 0.8 * rotation_before, (rotation_before, rotation_after)
+    keep = fixed | ~tracked
+    np.testing.assert_array_equal(smoothed.world_from_camera[keep], noisy.world_from_camera[keep])
+    # The runs are smoothed apart: what follows the lost frame does not reach the frames before it.
+    later = noisy.world_from_camera.copy()
+    later[151:, :3, 3] += 0.5
+    moved = smoothed_trajectory(Trajectory(times_s, later), fixed, tracked, config)
+    np.testing.assert_array_equal(moved.world_from_camera[:150], smoothed.world_from_camera[:150])
+
+
+def test_a_run_writes_its_trajectory_smoothed_about_the_keyframes_it_lists(tmp_path):
+    """``tambridge reconstruct --set frontend.smoothing.enabled=true`` writes what the stage gives: trajectory.txt is
+    the one written by default (smoothing off) smoothed,
+    the keyframes' rows and keyframes.txt as they were, and on a noisy sequence its error against the exact ground
+    truth is lower."""
+    from pipelines.reconstruct import reconstruct
+    from tambridge.config import load_config
+    from tambridge.evaluation.metrics import read_metrics
+    from tambridge.io.synthetic import SynthOptions, write_synthetic_sequence
+    from tambridge.trajectory import read_tum_trajectory
+
+    sequence = tmp_path / "noisy"
+    write_synthetic_sequence(sequence, SynthOptions(frame_count=40, depth_noise_m=0.003, colour_noise=0.01))
+    options = ["mapper.enabled=false", "mesh.enabled=false", "frontend.orb.mapping_thread=false"]
+    reconstruct(sequence, tmp_path / "on", load_config(None, options + ["frontend.smoothing.enabled=true"]),
+                progress=False)
+    reconstruct(sequence, tmp_path / "off", load_config(None, options), progress=False)
+    smoothed, raw = (read_tum_trajectory(tmp_path / run / "trajectory.txt") for run in ("on", "off"))
+    keyframes = read_tum_trajectory(tmp_path / "on" / "keyframes.txt")
+    assert (tmp_path / "on" / "keyframes.txt").read_text() == (tmp_path / "off" / "keyframes.txt").read_text()
+    fixed = np.isin(raw.timestamps_s, keyframes.timestamps_s)
+    assert 2 <= fixed.sum() < len(raw) - 10
+    expected = smoothed_trajectory(raw, fixed, np.ones(len(raw), bool), SmoothingConfig())
+    np.testing.assert_allclose(smoothed.world_from_camera, expected.world_from_camera, atol=1e-6)
+    np.testing.assert_allclose(smoothed.world_from_camera[fixed], raw.world_from_camera[fixed], atol=1e-9)
+    assert np.abs(smoothed.world_from_camera[~fixed] - raw.world_from_camera[~fixed]).max() > 1e-5
+    errors = {run: read_metrics(tmp_path / run / "metrics.json").trajectory for run in ("on", "off")}
+    assert errors["on"].ate_rmse_m < errors["off"].ate_rmse_m
+    assert errors["on"].rpe_trans_rmse_m < 0.9 * errors["off"].rpe_trans_rmse_m
+
+
+def test_a_time_that_does_not_advance_splits_the_runs_instead_of_dividing_by_zero():
+    times_s = np.array([0.0, 0.03, 0.06, 0.09, 0.09, 0.12, 0.15, 0.18])
+    positions = np.random.default_rng(3).normal(scale=0.01, size=(8, 3))
+    trajectory = _poses(times_s, positions, np.zeros((8, 3)))
+    smoothed = smoothed_trajectory(trajectory, np.zeros(8, bool), np.ones(8, bool), SmoothingConfig())
+    assert np.isfinite(smoothed.world_from_camera).all()
+    apart = [smoothed_trajectory(_poses(times_s[part], positions[part], np.zeros((4, 3))), np.zeros(4, bool),
+                                 np.ones(4, bool), SmoothingConfig()).world_from_camera for part in (slice(0, 4), slice(4, 8))]
+    np.testing.assert_allclose(smoothed.world_from_camera, np.concatenate(apart), atol=1e-12)
