@@ -61,8 +61,8 @@ def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
     keyframes = read_tum_trajectory(run_dir / "keyframes.txt")
     fixed = np.isin(tracked.timestamps_s, keyframes.timestamps_s)
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    # Lost frames, if any, were bridged: the smoother leaves them and splits its runs there only if it knows; a
-    # run with lost frames is scored as tracked throughout, which the table says.
+    # The run folder does not say which frames were lost (metrics.json counts them): all are taken as tracked, so a
+    # run with lost frames (the table's last column) is smoothed through them, where reconstruct would split.
     smoothed = smoothed_trajectory(tracked, fixed, np.ones(len(tracked), bool), SmoothingConfig(enabled=True))
     frames = [index for index in range(0, len(sequence), EVERY) if not fixed[index]]
     exported = ExportedMap.from_run(run_dir, mapper=_mapper_config(run_dir))
@@ -71,11 +71,12 @@ def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
         errors = evaluate_trajectory(trajectory, sequence.ground_truth, align="se3")
         at_poses = ExportedMap(exported.gaussians, trajectory.world_from_camera, exported.backend)
         with compute_threads(TORCH_THREADS, 0):
-            rendered = score_renders(score_frames(sequence, lambda index: at_poses.render(sequence.camera, index).rgb,
-                                                  frames))
+            rendered = score_renders(score_frames(
+                sequence, lambda index: at_poses.render(sequence.camera, index).rgb, frames))
         summary = rendered.summary()
         rows.append({"sequence": sequence_dir.name, "trajectory": name, "frames": len(tracked),
-                     "frames_lost": metrics["frames_lost"], "keyframes": int(fixed.sum()), "rendered_frames": len(frames),
+                     "frames_lost": metrics["frames_lost"], "keyframes": int(fixed.sum()),
+                     "rendered_frames": len(frames),
                      "ate_cm": 100 * errors.ate_rmse_m, "max_cm": 100 * errors.ate_max_m,
                      "rpe_cm": 100 * errors.rpe_trans_rmse_m, "rpe_deg": errors.rpe_rot_rmse_deg,
                      "psnr_db": summary["psnr_db"], "ssim": summary["ssim"]})
@@ -83,18 +84,19 @@ def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
 
 
 def _mapper_config(run_dir: Path):
+    """The mapper settings ``run_dir``'s config.yaml recorded (its rasteriser backend renders the splats)."""
     from tambridge.config import load_config
 
     return load_config(run_dir / "config.yaml", []).mapper
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| sequence | trajectory | ATE cm | largest cm | RPE cm / deg per frame | splats.ply at it: PSNR dB / SSIM "
-             "(frames) |", "|---|---|---|---|---|---|"]
+    lines = ["| sequence | trajectory | ATE cm | largest cm | RPE cm / deg per frame | splats.ply at it: PSNR dB / "
+             "SSIM (frames) | frames lost |", "|---|---|---|---|---|---|---|"]
     for row in rows:
         lines.append(f"| {row['sequence']} | {row['trajectory']} | {row['ate_cm']:.3f} | {row['max_cm']:.2f} | "
                      f"{row['rpe_cm']:.3f} / {row['rpe_deg']:.3f} | {row['psnr_db']:.2f} / {row['ssim']:.3f} "
-                     f"({row['rendered_frames']}) |")
+                     f"({row['rendered_frames']}) | {row['frames_lost']} |")
     return "\n".join(lines)
 
 

@@ -180,9 +180,9 @@ def reconstruct(
                                     prefetch=config.frontend.prefetch, progress=progress, checkpoints=checkpoints,
                                     live_view=live_view, stops=stops)
             check_tracked(sequence, tracking)
-            tracking = smoothed_result(tracking, config.frontend.smoothing)
             # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
             peak_memory_tracking_mb = peak_memory_mb()
+            tracking = smoothed_result(tracking, config.frontend.smoothing)
             gaussians = mesh = None
             if mapping is not None:
                 # The frames the evaluation scores as novel views stay out of the map.

@@ -71,8 +71,7 @@ def exp_se3_numba(xi):
 
 def log_se3(transform: np.ndarray) -> np.ndarray:
     """Logarithm of a 4x4 rigid transform to a twist ``(rho, phi)`` (6,); inverse of :func:`exp_se3`."""
-    rotation = transform[:3, :3]
-    phi = Rotation.from_matrix(rotation).as_rotvec()
+    phi = log_so3(transform[:3, :3])
     angle = np.linalg.norm(phi)
     phi_hat = hat(phi)
     if angle < 1e-8:

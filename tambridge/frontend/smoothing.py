@@ -136,6 +136,8 @@ def smoothed_trajectory(trajectory: Trajectory, fixed: np.ndarray, tracked: np.n
     starts = np.flatnonzero(starts_run)
     for start, next_start in zip(starts, np.append(starts[1:], len(tracked))):
         end = start + int(np.argmin(np.append(tracked[start:next_start], False)))
+        if end - start < 3:
+            continue  # no acceleration to weigh
         times_s, poses = trajectory.timestamps_s[start:end], world_from_camera[start:end]
         world_from_camera[start:end, :3, 3] = smooth_path(times_s, poses[:, :3, 3], fixed[start:end],
                                                           config.position_sigma_m, config.acceleration_sigma_m_s2)
@@ -150,8 +152,9 @@ def smoothed_trajectory(trajectory: Trajectory, fixed: np.ndarray, tracked: np.n
 
 
 def smoothed_result(result: FrontendResult, config: SmoothingConfig) -> FrontendResult:
-    """The frontend's result with its trajectory smoothed (:func:`smoothed_trajectory`) about its keyframes; as given
-    where ``config.enabled`` is off."""
+    """The frontend's result with its trajectory smoothed (:func:`smoothed_trajectory`) about its keyframes (culled
+    ones included: the map's Gaussians stay anchored to them), matched by timestamp; as given where
+    ``config.enabled`` is off."""
     if not config.enabled:
         return result
     fixed = np.isin(result.trajectory.timestamps_s, result.keyframe_trajectory.timestamps_s)

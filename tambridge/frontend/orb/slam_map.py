@@ -234,29 +234,27 @@ class SlamMap:
 
     def replace_points(self, old_ids: np.ndarray, new_ids: np.ndarray) -> None:
         """Merge duplicates: every observation of ``old_ids[i]`` becomes one of ``new_ids[i]``; old points go bad.
-        Then every point's observations are recounted, with no merge too (fusion attaches new observations before).
+        Always recounts observations, also when nothing merges (fusion attaches observations first).
 
         A keyframe that ends up seeing the same point at two keypoints keeps the first.
         """
         keep = old_ids != new_ids
         old_ids, new_ids = old_ids[keep], new_ids[keep]
-        if len(old_ids) == 0:
-            self.recount_observations()
-            return
-        remap = np.arange(self.points.count)
-        remap[old_ids] = new_ids
-        # Follow chains (a -> b -> c) so that every id lands on a point that is not replaced.
-        for _ in range(8):
-            remap = remap[remap]
-        for keyframe in self.keyframes:
-            ids = keyframe.point_ids
-            valid = np.flatnonzero(ids >= 0)
-            merged = remap[ids[valid]]
-            # Only a keyframe that saw a replaced point can now see a point twice.
-            if (merged != ids[valid]).any():
-                ids[valid] = merged
-                self.drop_duplicate_observations(keyframe)
-        self.points.bad[old_ids] = True
+        if len(old_ids):
+            remap = np.arange(self.points.count)
+            remap[old_ids] = new_ids
+            # Follow chains (a -> b -> c) so that every id lands on a point that is not replaced.
+            for _ in range(8):
+                remap = remap[remap]
+            for keyframe in self.keyframes:
+                ids = keyframe.point_ids
+                valid = np.flatnonzero(ids >= 0)
+                merged = remap[ids[valid]]
+                # Only a keyframe that saw a replaced point can now see a point twice.
+                if (merged != ids[valid]).any():
+                    ids[valid] = merged
+                    self.drop_duplicate_observations(keyframe)
+            self.points.bad[old_ids] = True
         self.recount_observations()
 
     def cull_keyframe(self, keyframe: Keyframe, parent: Keyframe) -> None:
