@@ -2,25 +2,25 @@
 
 Each frame is tracked on its own, so its pose carries its own error: on TUM fr1/xyz the tracked poses jump by
 millimetres from one frame to the next where the motion capture moves smoothly (docs/benchmarks.md, "A smoothed
-trajectory"). A hand-held camera cannot accelerate that hard at 30 frames/s. So after tracking, the trajectory is
-re-estimated as the path that best explains the tracked poses under a white-noise-acceleration motion model: per
-run of consecutive tracked frames, positions ``x`` minimise
+trajectory"). With smoothing on, the trajectory is re-estimated after tracking as the path that best explains the
+tracked poses under a white-noise-acceleration motion model: per run of consecutive tracked frames, positions ``x``
+minimise
 
     sum_i |x_i - y_i|^2 / sigma_p^2  +  sum_i |a_i(x)|^2 / sigma_a^2,
 
-``y`` the tracked positions and ``a_i`` the acceleration at frame ``i`` by finite differences over the frames'
-own times (a Whittaker smoother; the same least squares as a Rauch-Tung-Striebel smoother of a constant-velocity
-model, solved at once). Orientations are smoothed the same way on their path of rotation vectors: the small
-increments ``log(R_{i+1} R_i^T)`` are summed into a path, the path smoothed, and each frame's rotation turned by
-the difference (first order in the corrections, which are tenths of a degree). Keyframes, whose poses bundle
-adjustment estimated with every observation of the map, stay where they are and the frames between move towards
-a smooth path through them; so do the views the map was fitted at. Frames not tracked (lost, bridged) stay as
-they are and split the runs. The poses each frame got online (``TrackResult``) are not changed: only the
-trajectory written after tracking.
+``y`` the tracked positions and ``a_i`` the acceleration at frame ``i`` by finite differences over the frames' own
+times (a Whittaker smoother; the same least squares as a Rauch-Tung-Striebel smoother of a constant-velocity model,
+solved at once). Orientations are smoothed the same way on their path of rotation vectors: the small increments
+``log(R_{i+1} R_i^T)`` are summed into a path, the path smoothed, and each frame's rotation turned by the difference
+(first order in the corrections, which are tenths of a degree). Keyframes, whose poses bundle adjustment estimated
+with every observation of the map, stay where they are and the frames between move towards a smooth path through
+them (a mapping view the bridge took from a frame near its keyframe moves with the frames). Frames not tracked
+(lost, bridged) stay as they are and split the runs. The poses each frame got online (``TrackResult``) are not
+changed: only the trajectory written after tracking.
 
 It is off by default. The smoothed poses lie nearer the motion capture of TUM fr1/xyz, but the map renders
-worse at them: the jitter it removes is in the images' own timing as much as in tracking (docs/benchmarks.md,
-"A smoothed trajectory").
+worse at them: the deviations it removes are ones the images agree with (docs/benchmarks.md, "A smoothed
+trajectory").
 """
 
 from __future__ import annotations
