@@ -15,6 +15,7 @@ benchmarks/results/smoothing.json.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import subprocess
@@ -69,7 +70,7 @@ def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
     rows = []
     for name, trajectory in (("tracked (default)", tracked), ("smoothed", smoothed)):
         errors = evaluate_trajectory(trajectory, sequence.ground_truth, align="se3")
-        at_poses = ExportedMap(exported.gaussians, trajectory.world_from_camera, exported.backend)
+        at_poses = dataclasses.replace(exported, world_from_camera=trajectory.world_from_camera)
         with compute_threads(TORCH_THREADS, 0):
             rendered = score_renders(score_frames(
                 sequence, lambda index: at_poses.render(sequence.camera, index).rgb, frames))

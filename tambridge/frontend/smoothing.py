@@ -84,9 +84,10 @@ def smooth_path(times_s: np.ndarray, path: np.ndarray, fixed: np.ndarray, sigma:
     system = (scipy.sparse.identity(len(path), format="csr") / sigma**2 + acceleration.T @ acceleration).tocsr()
     right = path / sigma**2
     kept = np.flatnonzero(fixed)
-    right_free = right[free] - system[free][:, kept] @ path[kept]
+    free_rows = system[free]
+    right_free = right[free] - free_rows[:, kept] @ path[kept]
     out = path.copy()
-    solved = scipy.sparse.linalg.spsolve(system[free][:, free].tocsc(), right_free)
+    solved = scipy.sparse.linalg.spsolve(free_rows[:, free].tocsc(), right_free)
     out[free] = solved.reshape(len(free), -1)
     return out
 
