@@ -62,8 +62,11 @@ def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
     keyframes = read_tum_trajectory(run_dir / "keyframes.txt")
     fixed = np.isin(tracked.timestamps_s, keyframes.timestamps_s)
     metrics = json.loads((run_dir / "metrics.json").read_text())
-    # The run folder does not say which frames were lost (metrics.json counts them): all are taken as tracked, so a
-    # run with lost frames (the table's last column) is smoothed through them, where reconstruct would split.
+    if metrics["frames_lost"]:
+        # reconstruct splits the smoothing at lost frames; the run folder counts them but does not say which.
+        raise SystemExit(f"error: {run_dir}: {metrics['frames_lost']} frames lost, and the run folder does not say "
+                         "which; this benchmark smooths only runs that lost none (compare whole runs with "
+                         "--set frontend.smoothing.enabled=true instead)")
     smoothed = smoothed_trajectory(tracked, fixed, np.ones(len(tracked), bool), SmoothingConfig(enabled=True))
     frames = [index for index in range(0, len(sequence), EVERY) if not fixed[index]]
     exported = ExportedMap.from_run(run_dir, mapper=_mapper_config(run_dir))

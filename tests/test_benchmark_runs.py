@@ -162,3 +162,18 @@ def test_sped_up_sequence_keeps_every_nth_frame_as_the_mean_of_its_exposure(synt
     with pytest.raises(TambridgeError, match="fewer than one exposure of 3"):
         write_sped_up(short, empty, 4, 3)
     assert not any(empty.iterdir())
+
+
+def test_smoothing_benchmark_refuses_a_run_that_lost_frames(synthetic_sequence_dir, tmp_path):
+    """``benchmarks/smoothing.py`` cannot split its smoothing where a run lost frames (the run folder only counts
+    them), so it refuses such a run before it renders anything."""
+    from benchmarks.smoothing import scores
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    truth = (synthetic_sequence_dir / "groundtruth.txt").read_text()
+    (run_dir / "trajectory.txt").write_text(truth)
+    (run_dir / "keyframes.txt").write_text("".join(truth.splitlines(keepends=True)[:3]))
+    (run_dir / "metrics.json").write_text(json.dumps({"frames_lost": 2}))
+    with pytest.raises(SystemExit, match=r"run: 2 frames lost, and the run folder does not say which"):
+        scores(synthetic_sequence_dir, run_dir)
