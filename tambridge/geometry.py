@@ -120,15 +120,21 @@ def rotation_angle_deg(transform: np.ndarray) -> float:
     return float(rotation_angles_deg(transform))
 
 
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation (3, 3) nearest (Frobenius) to a 3x3 ``matrix``, by SVD. Of a sum of rotations it is their chordal
+    mean."""
+    u, _, vt = np.linalg.svd(matrix)
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
 def orthonormalised(transform: np.ndarray) -> np.ndarray:
-    """The 4x4 rigid transform with the rotation nearest (Frobenius) to ``transform``'s 3x3 block, by SVD.
+    """The 4x4 rigid transform with the rotation nearest (Frobenius) to ``transform``'s 3x3 block.
 
     Chains of products (a pose from the previous one times a motion) drift off SO(3) by rounding; this
     puts them back.
     """
-    u, _, vt = np.linalg.svd(transform[:3, :3])
     out = transform.copy()
-    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    out[:3, :3] = nearest_rotation(transform[:3, :3])
     return out
 
 

@@ -177,3 +177,33 @@ def test_smoothing_benchmark_refuses_a_run_that_lost_frames(synthetic_sequence_d
     (run_dir / "metrics.json").write_text(json.dumps({"frames_lost": 2}))
     with pytest.raises(SystemExit, match=r"run: 2 frames lost, and the run folder does not say which"):
         scores(synthetic_sequence_dir, run_dir)
+
+
+def test_smoothing_benchmark_moves_the_ground_truth_into_the_run_by_poses_not_positions_alone():
+    """On a straight path, positions leave a rotation about the path free; the fit by whole poses recovers the rigid
+    transform between the ground truth and a run that is that transform of it, at every frame time inside the
+    ground truth's span (interpolated)."""
+    import numpy as np
+
+    from benchmarks.smoothing import ground_truth_in_run
+    from tambridge.geometry import exp_se3, exp_so3
+    from tambridge.trajectory import Trajectory
+
+    def path(times_s):
+        """Along world x at 0.3 m/s, turning about the camera's y and z axes."""
+        poses = np.tile(np.eye(4), (len(times_s), 1, 1))
+        poses[:, :3, :3] = exp_so3(np.stack([np.zeros_like(times_s), 0.2 * np.sin(times_s), 0.1 * times_s], axis=1))
+        poses[:, 0, 3] = 0.3 * times_s
+        return poses
+
+    stamps = np.arange(0.0, 3.0, 0.01)
+    frame_stamps = np.arange(0.005, 3.0, 1 / 30)
+    run_from_truth = exp_se3(np.array([0.5, -0.2, 1.0, 0.3, -1.2, 0.7]))
+    frames = Trajectory(frame_stamps, run_from_truth @ path(frame_stamps))
+
+    moved = ground_truth_in_run(Trajectory(stamps, path(stamps)), frames)
+
+    inside = frame_stamps < stamps[-1]
+    np.testing.assert_array_equal(moved.timestamps_s, frame_stamps[inside])
+    # Interpolated 10 ms from a sample, the turning path is off by its curvature over that step only.
+    np.testing.assert_allclose(moved.world_from_camera, frames.world_from_camera[inside], atol=1e-5)

@@ -76,3 +76,17 @@ def test_look_at_points_the_optical_axis_at_the_target():
     np.testing.assert_allclose(target_camera[:3], [0.0, 0.0, 2.0], atol=1e-12)
     # Image "down" (camera +y) is world -z when up is +z.
     np.testing.assert_allclose(world_from_camera[:3, 1], [0.0, 0.0, -1.0], atol=1e-12)
+
+
+def test_nearest_rotation_of_a_sum_is_the_rotation_the_pairs_lie_about():
+    """Rotations in pairs R0 exp(+d) and R0 exp(-d) (d differing by pair) have R0 as their chordal mean; a reflection
+    in the sum's SVD is refused (det +1)."""
+    from tambridge.geometry import exp_so3, nearest_rotation
+
+    rng = np.random.default_rng(3)
+    centre = exp_so3(np.array([0.4, -1.1, 0.7]))
+    offsets = rng.normal(scale=0.3, size=(6, 3))
+    rotations = centre @ exp_so3(np.concatenate([offsets, -offsets]))
+    np.testing.assert_allclose(nearest_rotation(rotations.sum(axis=0)), centre, atol=1e-12)
+    mirrored = np.diag([1.0, 1.0, -1.0])
+    assert np.linalg.det(nearest_rotation(mirrored)) == pytest.approx(1.0)
