@@ -76,21 +76,25 @@ def track_segment(frames, sequence, config, trajectory_path: Path | None = None)
     """``(trajectory, row)`` of one tracking run over ``frames`` with the ORB frontend's ``config``."""
     from tambridge.evaluation.trajectory import evaluate_trajectory
     from tambridge.frontend.orb.frontend import OrbFrontend
-    from tambridge.frontend.smoothing import SmoothingConfig, smoothed_result
+    from tambridge.frontend.smoothing import SmoothingConfig, median_depth_m, smoothed_result
 
     frontend = OrbFrontend(sequence.camera, config)
     started = time.perf_counter()
     thread_cpu_s = 0.0
+    scene_depths_m, depth_medians_s = [], 0.0
     for frame in frames:
         cpu_started = time.thread_time()
         frontend.track(frame)
         thread_cpu_s += time.thread_time() - cpu_started
+        medians_started = time.perf_counter()
+        scene_depths_m.append(median_depth_m(frame.depth_m))
+        depth_medians_s += time.perf_counter() - medians_started
     result = frontend.finish()
-    tracking_s = time.perf_counter() - started
+    tracking_s = time.perf_counter() - started - depth_medians_s  # the smoothing's depths are not tracking's time
     errors = evaluate_trajectory(result.trajectory, sequence.ground_truth, align="se3")
     # What `tambridge reconstruct --set frontend.smoothing.enabled=true` writes: smoothed about the keyframes.
-    smoothed = evaluate_trajectory(smoothed_result(result, SmoothingConfig(enabled=True)).trajectory,
-                                   sequence.ground_truth, align="se3")
+    smoothed_run = smoothed_result(result, SmoothingConfig(enabled=True), scene_depths_m.__getitem__)
+    smoothed = evaluate_trajectory(smoothed_run.trajectory, sequence.ground_truth, align="se3")
     if trajectory_path is not None:
         from tambridge.trajectory import write_tum_trajectory
 

@@ -11,8 +11,10 @@ at both, with no exposure, at every 5th frame that is not a keyframe (full resol
 as-exported scores compute them): the same map seen from the two trajectories. The map is rendered a third time
 from the ground truth itself, interpolated at the frame times and moved into the run's world by the SE(3) that
 fits it to the tracked poses: on a synthetic sequence, whose ground truth is exact, this says whether the score
-of a render judges a trajectory or only its agreement with the poses the map was built from. Prints a table and
-writes benchmarks/results/smoothing.json.
+of a render judges a trajectory or only its agreement with the poses the map was built from. A fourth row keeps
+the smoothing's change only along the image's translation-rotation ambiguity at each frame's median depth
+(:func:`~tambridge.frontend.smoothing.along_image_ambiguity`). Prints a table and writes
+benchmarks/results/smoothing.json.
 """
 
 from __future__ import annotations
@@ -37,7 +39,8 @@ from tambridge.evaluation.exported import ExportedMap  # noqa: E402
 from tambridge.evaluation.rendering import score_frames, score_renders  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
-from tambridge.frontend.smoothing import SmoothingConfig, smoothed_trajectory  # noqa: E402
+from tambridge.frontend.smoothing import (  # noqa: E402
+    SmoothingConfig, along_image_ambiguity, median_depth_m, smoothed_trajectory)
 from tambridge.geometry import nearest_rotation  # noqa: E402
 from tambridge.io.tum import open_sequence  # noqa: E402
 from tambridge.threads import TORCH_THREADS, compute_threads  # noqa: E402
@@ -72,13 +75,18 @@ def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
         raise SystemExit(f"error: {run_dir}: {metrics['frames_lost']} frames lost, and the run folder does not say "
                          "which; this benchmark smooths only runs that lost none (compare whole runs with "
                          "--set frontend.smoothing.enabled=true instead)")
+    # The smoothed rows as reconstruct writes them with along_image_ambiguity off and on.
     smoothed = smoothed_trajectory(tracked, fixed, np.ones(len(tracked), bool), SmoothingConfig(enabled=True))
+    along = dataclasses.replace(smoothed, world_from_camera=along_image_ambiguity(
+        tracked.world_from_camera, smoothed.world_from_camera,
+        np.array([median_depth_m(sequence.frame_depth_m(index)) for index in range(len(sequence))])))
     truth = ground_truth_in_run(sequence.ground_truth, tracked)
     frames = [index for index in range(0, len(sequence), EVERY)
               if not fixed[index] and tracked.timestamps_s[index] in truth.timestamps_s]
     exported = ExportedMap.from_run(run_dir, mapper=_mapper_config(run_dir))
     rows = []
-    for name, trajectory in (("tracked (default)", tracked), ("smoothed", smoothed), ("ground truth", truth)):
+    for name, trajectory in (("tracked (default)", tracked), ("smoothed", smoothed),
+                             ("smoothed along the image ambiguity", along), ("ground truth", truth)):
         errors = evaluate_trajectory(trajectory, sequence.ground_truth, align="se3")
         at_poses = dataclasses.replace(exported, world_from_camera=_at_frames(trajectory, tracked))
         with compute_threads(TORCH_THREADS, 0):

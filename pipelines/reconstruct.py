@@ -44,7 +44,7 @@ from tambridge.export.world import WorldFrame, find_world
 from tambridge.files import atomic_write_text
 from tambridge.frontend.contract import Frontend, FrontendResult
 from tambridge.frontend.factory import make_frontend
-from tambridge.frontend.smoothing import smoothed_result
+from tambridge.frontend.smoothing import median_depth_m, smoothed_result
 from tambridge.io.prefetch import FramePrefetcher
 from tambridge.io.tum import MAX_ASSOCIATION_DIFFERENCE_S, RgbdSequence, find_accelerometer, open_sequence
 from tambridge.mapping.stage import MappingStage
@@ -182,7 +182,8 @@ def reconstruct(
             check_tracked(sequence, tracking)
             # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
             peak_memory_tracking_mb = peak_memory_mb()
-            tracking = smoothed_result(tracking, config.frontend.smoothing)
+            tracking = smoothed_result(tracking, config.frontend.smoothing,
+                                       lambda row: median_depth_m(sequence.frame_depth_m(row)))
             gaussians = mesh = None
             if mapping is not None:
                 # The frames the evaluation scores as novel views stay out of the map.

@@ -9,6 +9,8 @@ import pytest
 from tambridge.frontend.contract import FrontendResult
 from tambridge.frontend.smoothing import (
     SmoothingConfig,
+    along_image_ambiguity,
+    median_depth_m,
     smooth_path,
     smooth_path_reference,
     smoothed_result,
@@ -97,9 +99,9 @@ def test_a_run_writes_its_trajectory_smoothed_about_the_keyframes_it_lists(tmp_p
 
     given = []
 
-    def recorded(result, config):
+    def recorded(result, config, scene_depth_m):
         given.append(result)
-        return smoothed_result(result, config)
+        return smoothed_result(result, config, scene_depth_m)
 
     monkeypatch.setattr(pipeline, "smoothed_result", recorded)
     sequence = tmp_path / "noisy"
@@ -112,8 +114,10 @@ def test_a_run_writes_its_trajectory_smoothed_about_the_keyframes_it_lists(tmp_p
     keyframes = read_tum_trajectory(tmp_path / "run" / "keyframes.txt")
     fixed = np.isin(tracked.trajectory.timestamps_s, keyframes.timestamps_s)
     assert 2 <= fixed.sum() < len(written) - 10
-    expected = smoothed_trajectory(tracked.trajectory, fixed, tracked.tracked, SmoothingConfig())
-    np.testing.assert_allclose(written, expected.world_from_camera, atol=1e-6)
+    whole = smoothed_trajectory(tracked.trajectory, fixed, tracked.tracked, SmoothingConfig())
+    depths_m = [median_depth_m(open_sequence(sequence).frame_depth_m(row)) for row in range(len(written))]
+    expected = along_image_ambiguity(tracked.trajectory.world_from_camera, whole.world_from_camera, depths_m)
+    np.testing.assert_allclose(written, expected, atol=1e-6)
     np.testing.assert_allclose(written[fixed], tracked.trajectory.world_from_camera[fixed], atol=1e-6)
     assert np.abs(written[~fixed] - tracked.trajectory.world_from_camera[~fixed]).max() > 1e-4
     smoothed_errors = read_metrics(tmp_path / "run" / "metrics.json").trajectory
@@ -149,11 +153,33 @@ def test_the_result_is_smoothed_about_its_keyframes_only_when_enabled():
     keyframes = Trajectory(times_s[::6], trajectory.world_from_camera[::6])
     result = FrontendResult(trajectory, np.ones(30, bool), keyframes, {}, {}, np.zeros((0, 3)),
                             np.zeros((0, 3), np.uint8), np.zeros(0, np.int64), {}, 0, 0, 0)
-    assert smoothed_result(result, SmoothingConfig()) is result
-    smoothed = smoothed_result(result, SmoothingConfig(enabled=True)).trajectory.world_from_camera
+    assert smoothed_result(result, SmoothingConfig(), np.ones(30).__getitem__) is result
+    asked = []
+    smoothed = smoothed_result(result, SmoothingConfig(enabled=True, along_image_ambiguity=False),
+                               asked.append).trajectory.world_from_camera
+    assert not asked  # the depths are read only for the change along the ambiguity
     np.testing.assert_array_equal(smoothed[::6], trajectory.world_from_camera[::6])
     others = np.arange(30) % 6 != 0
     assert (np.abs(smoothed[others] - trajectory.world_from_camera[others]).max(axis=(1, 2)) > 1e-6).all()
+
+    depths_m = rng.uniform(0.5, 2.0, 30)
+    depths_m[7] = np.nan  # a frame that measured no depth
+    asked = []
+    along = smoothed_result(result, SmoothingConfig(enabled=True),
+                            lambda row: asked.append(row) or depths_m[row]).trajectory.world_from_camera
+    assert asked == list(np.flatnonzero(others))  # keyframes do not move: their depth is not read
+    filled = np.where(np.isnan(depths_m), np.nanmedian(depths_m[others]), depths_m)
+    np.testing.assert_allclose(along[others], along_image_ambiguity(
+        trajectory.world_from_camera[others], smoothed[others], filled[others]), atol=1e-12)
+    np.testing.assert_array_equal(along[::6], trajectory.world_from_camera[::6])
+
+
+def test_median_depth_samples_every_fourth_pixel_and_row_and_is_nan_without_depth():
+    depth_m = np.zeros((8, 8))
+    depth_m[::4, ::4] = [[1.0, 3.0], [2.0, 0.0]]
+    depth_m[1, 1] = 100.0  # not a sample
+    assert median_depth_m(depth_m) == 2.0
+    assert np.isnan(median_depth_m(np.zeros((8, 8))))
 
 
 def test_a_time_that_does_not_advance_splits_the_runs_instead_of_dividing_by_zero():
@@ -166,3 +192,28 @@ def test_a_time_that_does_not_advance_splits_the_runs_instead_of_dividing_by_zer
                                  np.ones(4, bool), SmoothingConfig()).world_from_camera
              for part in (slice(0, 4), slice(4, 8))]
     np.testing.assert_allclose(smoothed.world_from_camera, np.concatenate(apart), atol=1e-12)
+
+
+def test_along_the_image_ambiguity_a_change_keeps_the_optical_axis_point_where_the_tracked_pose_sees_it():
+    """A change already along the two image-preserving motions is kept whole; any other change is cut to them, so the
+    point on the tracked camera's optical axis at the scene depth lands where the tracked pose sees it (to second
+    order in the change), and the change along the axis and about it is dropped."""
+    from tambridge.frontend.smoothing import along_image_ambiguity
+    from tambridge.geometry import exp_se3, inverse
+
+    rng = np.random.default_rng(5)
+    tracked = np.stack([exp_se3(rng.normal(scale=[0.5, 0.5, 0.5, 0.4, 0.4, 0.4])) for _ in range(20)])
+    depth_m = rng.uniform(0.5, 3.0, 20)
+    small = 1e-3
+    along = np.stack([exp_se3(small * np.array([z, -2 * z, 0.0, -2.0, -1.0, 0.0])) for z in depth_m])
+    np.testing.assert_allclose(along_image_ambiguity(tracked, tracked @ along, depth_m), tracked @ along, atol=1e-12)
+
+    smoothed = tracked @ np.stack([exp_se3(small * rng.normal(size=6)) for _ in range(20)])
+    kept = along_image_ambiguity(tracked, smoothed, depth_m)
+    for pose, result, moved, z in zip(tracked, kept, smoothed, depth_m):
+        point_world = pose @ np.array([0.0, 0.0, z, 1.0])
+        in_result, in_moved = (inverse(result) @ point_world)[:3], (inverse(moved) @ point_world)[:3]
+        np.testing.assert_allclose(in_result[:2] / in_result[2], [0.0, 0.0], atol=10 * small ** 2)
+        assert np.linalg.norm(in_moved[:2] / in_moved[2]) > 20 * small ** 2  # the full change does move it
+        change = inverse(pose) @ result
+        assert abs(change[2, 3]) < 10 * small ** 2 and abs(change[1, 0]) < 10 * small ** 2  # no step along z, no roll
