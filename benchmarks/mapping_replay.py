@@ -44,7 +44,7 @@ from tambridge.config import load_config  # noqa: E402
 from tambridge.files import atomic_write_bytes, atomic_write_text  # noqa: E402
 from tambridge.frontend.contract import KeyframeEvent  # noqa: E402
 from tambridge.frontend.factory import make_frontend  # noqa: E402
-from tambridge.geometry import transform_points  # noqa: E402
+from tambridge.geometry import nearest_rotation, transform_points  # noqa: E402
 from tambridge.io.tum import RgbdSequence, open_sequence  # noqa: E402
 from tambridge.runlog import RunLog  # noqa: E402
 from tambridge.trajectory import Trajectory  # noqa: E402
@@ -57,11 +57,8 @@ def umeyama_se3(source_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:
     """4x4 rigid ``target_from_source`` minimising the squared distances of (N, 3) point pairs (Umeyama 1991, no scale)."""
     source_mean, target_mean = source_m.mean(0), target_m.mean(0)
     covariance = (target_m - target_mean).T @ (source_m - source_mean) / len(source_m)
-    u, _, vt = np.linalg.svd(covariance)
-    sign = np.eye(3)
-    sign[2, 2] = np.sign(np.linalg.det(u) * np.linalg.det(vt))
     target_from_source = np.eye(4)
-    target_from_source[:3, :3] = u @ sign @ vt
+    target_from_source[:3, :3] = nearest_rotation(covariance)
     target_from_source[:3, 3] = target_mean - target_from_source[:3, :3] @ source_mean
     return target_from_source
 

@@ -39,9 +39,9 @@ from tambridge.evaluation.exported import ExportedMap  # noqa: E402
 from tambridge.evaluation.rendering import score_frames, score_renders  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
-from tambridge.frontend.smoothing import (  # noqa: E402
-    SmoothingConfig, along_image_ambiguity, median_depth_m, smoothed_trajectory)
-from tambridge.geometry import nearest_rotation  # noqa: E402
+from tambridge.frontend.contract import FrontendResult  # noqa: E402
+from tambridge.frontend.smoothing import SmoothingConfig, median_depth_m, smoothed_result  # noqa: E402
+from tambridge.geometry import rotation_onto  # noqa: E402
 from tambridge.io.tum import open_sequence  # noqa: E402
 from tambridge.threads import TORCH_THREADS, compute_threads  # noqa: E402
 from tambridge.trajectory import Trajectory, read_tum_trajectory  # noqa: E402
@@ -63,23 +63,29 @@ def reconstructed(sequence: Path) -> Path:
 
 
 def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
-    """Rows for the tracked and the smoothed trajectory of one run: ground-truth errors and renders of its map."""
+    """Rows for the tracked trajectory of one run, the same smoothed (whole, and along the image's ambiguity) and the
+    ground truth: errors against the ground truth (the last row's are about 0 by construction) and renders of its
+    map. The run must have every frame of ``sequence_dir`` (no stride, no frame cap)."""
     camera = camera_file_for(sequence_dir)
     sequence = open_sequence(sequence_dir, camera_file=camera)
     tracked = read_tum_trajectory(run_dir / "trajectory.txt")
     keyframes = read_tum_trajectory(run_dir / "keyframes.txt")
     fixed = np.isin(tracked.timestamps_s, keyframes.timestamps_s)
+    if len(tracked) != len(sequence):
+        raise SystemExit(f"error: {run_dir / 'trajectory.txt'}: {len(tracked)} poses for {len(sequence)} frames of "
+                         f"{sequence_dir}; give a run of every frame (no --set input.stride or input.max_frames)")
     metrics = json.loads((run_dir / "metrics.json").read_text())
     if metrics["frames_lost"]:
         # reconstruct splits the smoothing at lost frames; the run folder counts them but does not say which.
         raise SystemExit(f"error: {run_dir}: {metrics['frames_lost']} frames lost, and the run folder does not say "
                          "which; this benchmark smooths only runs that lost none (compare whole runs with "
                          "--set frontend.smoothing.enabled=true instead)")
-    # The smoothed rows as reconstruct writes them with along_image_ambiguity off and on.
-    smoothed = smoothed_trajectory(tracked, fixed, np.ones(len(tracked), bool), SmoothingConfig(enabled=True))
-    along = dataclasses.replace(smoothed, world_from_camera=along_image_ambiguity(
-        tracked.world_from_camera, smoothed.world_from_camera,
-        np.array([median_depth_m(sequence.frame_depth_m(index)) for index in range(len(sequence))])))
+    # The smoothed rows as reconstruct writes them, with along_image_ambiguity off and on.
+    result = FrontendResult(tracked, np.ones(len(tracked), bool), keyframes, {}, {}, np.zeros((0, 3)),
+                            np.zeros((0, 3), np.uint8), np.zeros(0, np.int64), {}, 0, 0, 0)
+    smoothed, along = (smoothed_result(result, SmoothingConfig(enabled=True, along_image_ambiguity=keep_along),
+                                       lambda row: median_depth_m(sequence.frame_depth_m(row))).trajectory
+                       for keep_along in (False, True))
     truth = ground_truth_in_run(sequence.ground_truth, tracked)
     frames = [index for index in range(0, len(sequence), EVERY)
               if not fixed[index] and tracked.timestamps_s[index] in truth.timestamps_s]
@@ -110,8 +116,7 @@ def ground_truth_in_run(ground_truth: Trajectory, tracked: Trajectory) -> Trajec
     truth = ground_truth_at(ground_truth, tracked.timestamps_s)
     tracked_at = tracked.world_from_camera[np.searchsorted(tracked.timestamps_s, truth.timestamps_s)]
     run_from_truth = np.eye(4)
-    run_from_truth[:3, :3] = nearest_rotation(np.einsum("nij,nkj->ik", tracked_at[:, :3, :3],
-                                                        truth.world_from_camera[:, :3, :3]))
+    run_from_truth[:3, :3] = rotation_onto(tracked_at[:, :3, :3], truth.world_from_camera[:, :3, :3])
     run_from_truth[:3, 3] = np.mean(tracked_at[:, :3, 3] - truth.positions_m @ run_from_truth[:3, :3].T, axis=0)
     return Trajectory(truth.timestamps_s, run_from_truth @ truth.world_from_camera)
 

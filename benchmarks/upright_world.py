@@ -37,7 +37,7 @@ from tambridge.export.world import (  # noqa: E402
     up_from_planes,
 )
 from tambridge.files import atomic_write_text  # noqa: E402
-from tambridge.geometry import inverse, nearest_rotation, transform_points  # noqa: E402
+from tambridge.geometry import inverse, rotation_onto, transform_points  # noqa: E402
 from tambridge.io.tum import find_accelerometer  # noqa: E402
 from tambridge.trajectory import Trajectory, read_tum_trajectory  # noqa: E402
 
@@ -54,8 +54,8 @@ def truth_up_in_upright(trajectory: Trajectory, truth: Trajectory, axis: str) ->
     fits positions only, which leaves a rotation about a short path's line free)."""
     nearest = truth.nearest(trajectory.timestamps_s)
     near = np.abs(nearest.timestamps_s - trajectory.timestamps_s) <= 0.02
-    truth_from_upright = nearest_rotation(np.einsum("nij,nkj->ik", nearest.world_from_camera[near, :3, :3],
-                                                    trajectory.world_from_camera[near, :3, :3]))
+    truth_from_upright = rotation_onto(nearest.world_from_camera[near, :3, :3],
+                                       trajectory.world_from_camera[near, :3, :3])
     return truth_from_upright.T @ np.eye(3)[AXES[axis]]
 
 

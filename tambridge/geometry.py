@@ -127,6 +127,12 @@ def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
     return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
 
 
+def rotation_onto(rotations_a: np.ndarray, rotations_b: np.ndarray) -> np.ndarray:
+    """The rotation Q (3, 3) that best maps rotations ``rotations_b`` onto ``rotations_a`` (N, 3, 3) from the left,
+    minimising sum_i |A_i - Q B_i|^2 (Frobenius): the chordal mean of ``A_i B_i^T``."""
+    return nearest_rotation(np.einsum("nij,nkj->ik", rotations_a, rotations_b))
+
+
 def orthonormalised(transform: np.ndarray) -> np.ndarray:
     """The 4x4 rigid transform with the rotation nearest (Frobenius) to ``transform``'s 3x3 block.
 

@@ -90,3 +90,12 @@ def test_nearest_rotation_of_a_sum_is_the_rotation_the_pairs_lie_about():
     np.testing.assert_allclose(nearest_rotation(rotations.sum(axis=0)), centre, atol=1e-12)
     mirrored = np.diag([1.0, 1.0, -1.0])
     assert np.linalg.det(nearest_rotation(mirrored)) == pytest.approx(1.0)
+
+
+def test_rotation_onto_recovers_the_rotation_between_two_sets_of_rotations():
+    from tambridge.geometry import exp_so3, rotation_onto
+
+    rng = np.random.default_rng(8)
+    rotations = exp_so3(rng.normal(size=(10, 3)))
+    turn = exp_so3(np.array([-0.3, 2.1, 0.5]))
+    np.testing.assert_allclose(rotation_onto(turn @ rotations, rotations), turn, atol=1e-12)

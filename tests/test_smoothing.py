@@ -198,8 +198,7 @@ def test_along_the_image_ambiguity_a_change_keeps_the_optical_axis_point_where_t
     """A change already along the two image-preserving motions is kept whole; any other change is cut to them, so the
     point on the tracked camera's optical axis at the scene depth lands where the tracked pose sees it (to second
     order in the change), and the change along the axis and about it is dropped."""
-    from tambridge.frontend.smoothing import along_image_ambiguity
-    from tambridge.geometry import exp_se3, inverse
+    from tambridge.geometry import exp_se3, inverse, log_se3
 
     rng = np.random.default_rng(5)
     tracked = np.stack([exp_se3(rng.normal(scale=[0.5, 0.5, 0.5, 0.4, 0.4, 0.4])) for _ in range(20)])
@@ -217,3 +216,13 @@ def test_along_the_image_ambiguity_a_change_keeps_the_optical_axis_point_where_t
         assert np.linalg.norm(in_moved[:2] / in_moved[2]) > 20 * small ** 2  # the full change does move it
         change = inverse(pose) @ result
         assert abs(change[2, 3]) < 10 * small ** 2 and abs(change[1, 0]) < 10 * small ** 2  # no step along z, no roll
+
+    # The orthogonal projection, metres against radians: a sideways step a at depth z keeps a z^2 / (z^2 + 1) of it
+    # and turns by -a z / (z^2 + 1).
+    step = tracked @ np.stack([exp_se3(np.array([small, 0.0, 0.0, 0.0, 0.0, 0.0]))] * 20)
+    kept = np.stack([log_se3(inverse(pose) @ result)
+                     for pose, result in zip(tracked, along_image_ambiguity(tracked, step, depth_m))])
+    fraction = depth_m ** 2 / (depth_m ** 2 + 1)
+    np.testing.assert_allclose(kept[:, 0], small * fraction, rtol=1e-6)
+    np.testing.assert_allclose(kept[:, 4], -small * fraction / depth_m, rtol=1e-6)
+    np.testing.assert_allclose(kept[:, [1, 2, 3, 5]], 0.0, atol=1e-12)

@@ -30,6 +30,7 @@ smoothed trajectory").
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable
 
 import numpy as np
@@ -40,6 +41,8 @@ from tambridge.frontend.contract import FrontendResult
 from tambridge.geometry import exp_se3, exp_so3, inverse, log_se3, log_so3
 from tambridge.settings import POSITIVE, setting
 from tambridge.trajectory import Trajectory
+
+logger = logging.getLogger(__name__)
 
 
 @dataclasses.dataclass
@@ -166,15 +169,16 @@ def smoothed_trajectory(trajectory: Trajectory, fixed: np.ndarray, tracked: np.n
 def along_image_ambiguity(world_from_tracked: np.ndarray, world_from_smoothed: np.ndarray,
                           scene_depth_m: np.ndarray) -> np.ndarray:
     """Poses (N, 4, 4) world_from_camera: each smoothed pose's change from its tracked pose kept only along the two
-    motions that leave an image of a scene at ``scene_depth_m`` (N,) metres where it was, a sideways step with the
-    turn that keeps the optical axis's point in view (t_x with w_y = -t_x / z; t_y with w_x = t_y / z, small twists
-    in the tracked camera's frame; the orthogonal projection, metres against radians); the rest of the change (along the viewing axis, the roll, and whatever moves
-    the image) is dropped. Tracked poses err mostly along those two motions, which the images cannot see; a change
-    off them the images do see (docs/benchmarks.md, "A smoothed trajectory"). A NaN depth (a frame that measured
-    none) takes the median of the others' (1 m where all are NaN)."""
-    scene_depth_m = np.array(scene_depth_m, dtype=np.float64)
-    known = np.isfinite(scene_depth_m)
-    scene_depth_m[~known] = np.median(scene_depth_m[known]) if known.any() else 1.0
+    motions that leave an image of a scene at ``scene_depth_m`` (N,) metres (finite, positive) where it was: a
+    sideways step with the turn that keeps the optical axis's point in view (t_x with w_y = -t_x / z; t_y with
+    w_x = t_y / z; small twists in the tracked camera's frame, projected orthogonally, metres against radians). The
+    rest of the change (along the viewing axis, the roll, and whatever moves the image) is dropped. Tracked poses
+    err mostly along those two motions, which the images cannot see; a change off them the images do see
+    (docs/benchmarks.md, "A smoothed trajectory")."""
+    count = len(world_from_tracked)
+    assert world_from_tracked.shape == world_from_smoothed.shape == (count, 4, 4), world_from_smoothed.shape
+    scene_depth_m = np.asarray(scene_depth_m, dtype=np.float64)
+    assert scene_depth_m.shape == (count,) and (scene_depth_m > 0).all(), scene_depth_m
     out = np.empty_like(world_from_tracked)
     for row, (tracked, smoothed, depth_m) in enumerate(zip(world_from_tracked, world_from_smoothed, scene_depth_m)):
         twist = log_se3(inverse(tracked) @ smoothed)
@@ -199,7 +203,9 @@ def smoothed_result(result: FrontendResult, config: SmoothingConfig,
     """The frontend's result with its trajectory smoothed (:func:`smoothed_trajectory`) about its keyframes (culled
     ones included: the map's Gaussians stay anchored to them), matched by timestamp, and with
     ``config.along_image_ambiguity`` each change kept along the image's ambiguity (:func:`along_image_ambiguity`) at
-    ``scene_depth_m(row)``, the depth (m) of the scene that frame sees, asked only of the frames that move; as given where ``config.enabled`` is off."""
+    ``scene_depth_m(row)``, the depth (m) of the scene that frame sees (NaN: it measured none), asked only of the
+    frames that move; as given where ``config.enabled`` is off. A moving frame without depth takes the median of
+    the others' (1 m where none has one), and the log says so."""
     if not config.enabled:
         return result
     fixed = np.isin(result.trajectory.timestamps_s, result.keyframe_trajectory.timestamps_s)
@@ -207,7 +213,13 @@ def smoothed_result(result: FrontendResult, config: SmoothingConfig,
     if config.along_image_ambiguity:
         world_from_tracked = result.trajectory.world_from_camera
         moved = np.flatnonzero((smoothed.world_from_camera != world_from_tracked).any(axis=(1, 2)))
-        depths_m = np.array([scene_depth_m(int(row)) for row in moved])
+        depths_m = np.array([scene_depth_m(int(row)) for row in moved], dtype=np.float64)
+        measured = np.isfinite(depths_m) & (depths_m > 0)
+        if not measured.all():
+            fallback_m = float(np.median(depths_m[measured])) if measured.any() else 1.0
+            logger.warning("smoothing: %d moving frame(s) measured no depth (the first: frame %d); they take %.2f m "
+                           "for the image's ambiguity", int((~measured).sum()), int(moved[~measured][0]), fallback_m)
+            depths_m[~measured] = fallback_m
         smoothed.world_from_camera[moved] = along_image_ambiguity(world_from_tracked[moved],
                                                                   smoothed.world_from_camera[moved], depths_m)
     return dataclasses.replace(result, trajectory=smoothed)
