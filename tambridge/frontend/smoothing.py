@@ -58,8 +58,8 @@ class SmoothingConfig:
     rotation_sigma_deg: float = setting(0.1, "noise of a tracked frame's orientation (deg)", POSITIVE)
     angular_acceleration_sigma_deg_s2: float = setting(100.0, "the camera's angular acceleration the motion model "
                                                               "expects (deg/s^2)", POSITIVE)
-    # The whole change moves the images off the map: renders at the smoothed poses score 0.4-0.9 dB lower; kept along
-    # the ambiguity, 0.03-0.07 dB (docs/benchmarks.md, "A smoothed trajectory").
+    # The whole change moves the images off the map, which then renders worse from the smoothed poses; kept along the
+    # ambiguity, the change hardly does (docs/benchmarks.md, "A smoothed trajectory").
     along_image_ambiguity: bool = setting(True, "keep each frame's change only along the two motions its image "
                                                 "cannot tell from standing still at its median depth (a sideways "
                                                 "step with the turn that keeps the scene in view; false: the whole "
