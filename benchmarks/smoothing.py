@@ -100,7 +100,7 @@ def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
                 sequence, lambda index: at_poses.render(sequence.camera, index).rgb, frames))
         summary = rendered.summary()
         rows.append({"sequence": sequence_dir.name, "trajectory": name, "frames": len(tracked),
-                     "frames_lost": metrics["frames_lost"], "keyframes": int(fixed.sum()),
+                     "keyframes": int(fixed.sum()),
                      "rendered_frames": len(frames),
                      "ate_cm": 100 * errors.ate_rmse_m, "max_cm": 100 * errors.ate_max_m,
                      "rpe_cm": 100 * errors.rpe_trans_rmse_m, "rpe_deg": errors.rpe_rot_rmse_deg,
@@ -140,11 +140,11 @@ def _mapper_config(run_dir: Path):
 
 def table(rows: list[dict]) -> str:
     lines = ["| sequence | trajectory | ATE cm | largest cm | RPE cm / deg per frame | splats.ply at it: PSNR dB / "
-             "SSIM (frames) | frames lost |", "|---|---|---|---|---|---|---|"]
+             "SSIM (frames) |", "|---|---|---|---|---|---|"]
     for row in rows:
         lines.append(f"| {row['sequence']} | {row['trajectory']} | {row['ate_cm']:.3f} | {row['max_cm']:.2f} | "
                      f"{row['rpe_cm']:.3f} / {row['rpe_deg']:.3f} | {row['psnr_db']:.2f} / {row['ssim']:.3f} "
-                     f"({row['rendered_frames']}) | {row['frames_lost']} |")
+                     f"({row['rendered_frames']}) |")
     return "\n".join(lines)
 
 
