@@ -18,7 +18,7 @@ Tracking only (the ORB frontend with the default settings: loop closure, global 
 Gaussian mapping. frames/s counts the time inside ``track`` and ``finish``; under shared CPUs compare the modes'
 ratio within one run, not absolute figures. ATE is the RMSE after SE(3) alignment over the segment; ``max cm``
 is the largest aligned error; RPE the translational RMSE between consecutive frames. The "smoothed" columns score
-the trajectory `--set frontend.smoothing.enabled=true` writes: the same one smoothed about its keyframes
+the trajectory a default run writes (`frontend.smoothing`): the same one smoothed about its keyframes
 (tambridge/frontend/smoothing.py). ``tracking CPU ms/frame`` is
 the CPU time of the tracking thread inside ``track`` (thread time: the mapping thread and other processes do not
 count), the figure to hold against 33 ms for 30 frames/s. The term's cost is also timed
@@ -92,8 +92,8 @@ def track_segment(frames, sequence, config, trajectory_path: Path | None = None)
     result = frontend.finish()
     tracking_s = time.perf_counter() - started - depth_medians_s  # the smoothing's depths are not tracking's time
     errors = evaluate_trajectory(result.trajectory, sequence.ground_truth, align="se3")
-    # What `tambridge reconstruct --set frontend.smoothing.enabled=true` writes: smoothed about the keyframes.
-    smoothed_run = smoothed_result(result, SmoothingConfig(enabled=True), scene_depths_m.__getitem__)
+    # What a default `tambridge reconstruct` writes: smoothed about the keyframes.
+    smoothed_run = smoothed_result(result, SmoothingConfig(enabled=True), np.array(scene_depths_m))
     smoothed = evaluate_trajectory(smoothed_run.trajectory, sequence.ground_truth, align="se3")
     if trajectory_path is not None:
         from tambridge.trajectory import write_tum_trajectory

@@ -3,9 +3,9 @@ looks like from it.
 
     python benchmarks/smoothing.py /work/data/rgbd_dataset_freiburg1_xyz /work/shared/data/tum_fr1_xyz_first37
 
-Each sequence is reconstructed once with the default preset (smoothing off; mesh off) in its own process, under
-benchmarks/results/runs/. Its trajectory.txt (the tracked poses) is then smoothed about the run's keyframes
-(keyframes.txt) with the default motion model, as ``--set frontend.smoothing.enabled=true`` would write it. Both
+Each sequence is reconstructed once with the default preset but smoothing off (and mesh off) in its own process,
+under benchmarks/results/runs/. Its trajectory.txt (the tracked poses) is then smoothed about the run's keyframes
+(keyframes.txt) with the default motion model, as a default run writes it. Both
 are scored against the ground truth (SE(3) ATE, largest error, RPE per frame) and the run's splats.ply is rendered
 at both, with no exposure, at every 5th frame that is not a keyframe (full resolution; PSNR and SSIM as the run's
 as-exported scores compute them): the same map seen from the two trajectories. The map is rendered a third time
@@ -51,7 +51,8 @@ EVERY = 5
 
 
 def reconstructed(sequence: Path) -> Path:
-    """The folder of a default run of ``sequence`` (smoothing off, mesh off), made in a child process."""
+    """The folder of a default-preset run of ``sequence`` with smoothing off (and mesh off), made in a child
+    process."""
     out = ROOT / "benchmarks" / "results" / "runs" / f"smoothing__{sequence.name}"
     camera = camera_file_for(sequence)
     command = [sys.executable, str(ROOT / "cli.py"), "reconstruct", str(sequence), "-o", str(out), "--quiet",
@@ -74,24 +75,28 @@ def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
     if len(tracked) != len(sequence):
         raise SystemExit(f"error: {run_dir / 'trajectory.txt'}: {len(tracked)} poses for {len(sequence)} frames of "
                          f"{sequence_dir}; give a run of every frame (no --set input.stride or input.max_frames)")
+    if _run_config(run_dir).frontend.smoothing.enabled:
+        raise SystemExit(f"error: {run_dir}: its trajectory.txt is smoothed already (config.yaml: "
+                         "frontend.smoothing.enabled: true); give a run made with "
+                         "--set frontend.smoothing.enabled=false")
     metrics = json.loads((run_dir / "metrics.json").read_text())
     if metrics["frames_lost"]:
         # reconstruct splits the smoothing at lost frames; the run folder counts them but does not say which.
         raise SystemExit(f"error: {run_dir}: {metrics['frames_lost']} frames lost, and the run folder does not say "
-                         "which; this benchmark smooths only runs that lost none (compare whole runs with "
-                         "--set frontend.smoothing.enabled=true instead)")
+                         "which; this benchmark smooths only runs that lost none (compare whole runs with and without "
+                         "--set frontend.smoothing.enabled=false instead)")
     # The smoothed rows as reconstruct writes them, with along_image_ambiguity off and on.
     result = FrontendResult(tracked, np.ones(len(tracked), bool), keyframes, {}, {}, np.zeros((0, 3)),
                             np.zeros((0, 3), np.uint8), np.zeros(0, np.int64), {}, 0, 0, 0)
+    scene_depths_m = np.array([median_depth_m(sequence.frame_depth_m(row)) for row in range(len(sequence))])
     smoothed, along = (smoothed_result(result, SmoothingConfig(enabled=True, along_image_ambiguity=keep_along),
-                                       lambda row: median_depth_m(sequence.frame_depth_m(row))).trajectory
-                       for keep_along in (False, True))
+                                       scene_depths_m).trajectory for keep_along in (False, True))
     truth = ground_truth_in_run(sequence.ground_truth, tracked)
     frames = [index for index in range(0, len(sequence), EVERY)
               if not fixed[index] and tracked.timestamps_s[index] in truth.timestamps_s]
-    exported = ExportedMap.from_run(run_dir, mapper=_mapper_config(run_dir))
+    exported = ExportedMap.from_run(run_dir, mapper=_run_config(run_dir).mapper)
     rows = []
-    for name, trajectory in (("tracked (default)", tracked), ("smoothed", smoothed),
+    for name, trajectory in (("tracked", tracked), ("smoothed", smoothed),
                              ("smoothed along the image ambiguity", along), ("ground truth", truth)):
         errors = evaluate_trajectory(trajectory, sequence.ground_truth, align="se3")
         at_poses = dataclasses.replace(exported, world_from_camera=_at_frames(trajectory, tracked))
@@ -131,11 +136,11 @@ def _at_frames(trajectory: Trajectory, tracked: Trajectory) -> np.ndarray:
     return world_from_camera
 
 
-def _mapper_config(run_dir: Path):
-    """The mapper settings ``run_dir``'s config.yaml recorded (its rasteriser backend renders the splats)."""
+def _run_config(run_dir: Path):
+    """The settings ``run_dir``'s config.yaml recorded (the mapper's rasteriser backend renders the splats)."""
     from tambridge.config import load_config
 
-    return load_config(run_dir / "config.yaml", []).mapper
+    return load_config(run_dir / "config.yaml", [])
 
 
 def table(rows: list[dict]) -> str:

@@ -90,6 +90,9 @@ class RunCounters:
     gaussian_counts: list[tuple[int, int]] = dataclasses.field(default_factory=list)
     """(frame index, Gaussians in the map after that frame), with the mapper on."""
     frames_without_depth: list[int] = dataclasses.field(default_factory=list)
+    scene_depths_m: list[float] = dataclasses.field(default_factory=list)
+    """Each frame's median depth (m, NaN where it has none; :func:`median_depth_m`), in frame order: the depth of
+    the scene it sees, for the smoothing."""
 
     def elapsed_s(self) -> float:
         """Seconds since the run started (a resumed run's include those of the run it continues)."""
@@ -97,7 +100,8 @@ class RunCounters:
 
     def state_dict(self) -> dict:
         return {"elapsed_s": self.elapsed_s(), "keyframes": self.keyframes, "gaussian_counts": list(self.gaussian_counts),
-                "frames_without_depth": list(self.frames_without_depth)}
+                "frames_without_depth": list(self.frames_without_depth),
+                "scene_depths_m": np.array(self.scene_depths_m, np.float64)}
 
     def load_state_dict(self, state: dict) -> None:
         """Continue the counts of ``state``; the clock goes on from its elapsed seconds."""
@@ -105,6 +109,7 @@ class RunCounters:
         self.keyframes = state["keyframes"]
         self.gaussian_counts = list(state["gaussian_counts"])
         self.frames_without_depth = list(state["frames_without_depth"])
+        self.scene_depths_m = state["scene_depths_m"].tolist()
 
 
 def reconstruct(
@@ -182,8 +187,7 @@ def reconstruct(
             check_tracked(sequence, tracking)
             # The peak of the online part (tracking and mapping every frame); exports and evaluation come after it.
             peak_memory_tracking_mb = peak_memory_mb()
-            tracking = smoothed_result(tracking, config.frontend.smoothing,
-                                       lambda row: median_depth_m(sequence.frame_depth_m(row)))
+            tracking = smoothed_result(tracking, config.frontend.smoothing, np.array(counters.scene_depths_m))
             gaussians = mesh = None
             if mapping is not None:
                 # The frames the evaluation scores as novel views stay out of the map.
@@ -313,6 +317,7 @@ def track_frames(
             if mapping is not None and result.keyframe is not None:
                 mapping.on_keyframe(result.keyframe, frame, frontend.keyframe_poses())
             counters.keyframes += result.is_keyframe
+            counters.scene_depths_m.append(median_depth_m(frame.depth_m))
             if not (frame.depth_m > 0).any():
                 # A frame without depth still tracks from colour (PnP on the map) but adds nothing to either map.
                 counters.frames_without_depth.append(frame.index)

@@ -36,7 +36,7 @@ from tambridge.state import StateCodec, StateTypes, decode_state, dotted_items, 
 
 logger = logging.getLogger("tambridge.checkpoint")
 
-CHECKPOINT_VERSION = 3
+CHECKPOINT_VERSION = 4
 """Bumped whenever what a checkpoint holds changes; a checkpoint of another version is refused."""
 CHECKPOINT_FORMAT = "tambridge checkpoint"
 CHECKPOINT_FOLDER = "checkpoint"

@@ -164,9 +164,9 @@ def test_sped_up_sequence_keeps_every_nth_frame_as_the_mean_of_its_exposure(synt
     assert not any(empty.iterdir())
 
 
-def test_smoothing_benchmark_refuses_a_run_that_lost_frames(synthetic_sequence_dir, tmp_path):
-    """``benchmarks/smoothing.py`` cannot split its smoothing where a run lost frames (the run folder only counts
-    them), so it refuses such a run before it renders anything."""
+def test_smoothing_benchmark_refuses_a_smoothed_run_or_one_that_lost_frames(synthetic_sequence_dir, tmp_path):
+    """``benchmarks/smoothing.py`` smooths a run's trajectory.txt: it refuses one smoothed already, and one that lost
+    frames (it cannot split its smoothing there: the run folder only counts them), before it renders anything."""
     from benchmarks.smoothing import scores
 
     run_dir = tmp_path / "run"
@@ -175,6 +175,10 @@ def test_smoothing_benchmark_refuses_a_run_that_lost_frames(synthetic_sequence_d
     (run_dir / "trajectory.txt").write_text(truth)
     (run_dir / "keyframes.txt").write_text("".join(truth.splitlines(keepends=True)[:3]))
     (run_dir / "metrics.json").write_text(json.dumps({"frames_lost": 2}))
+    (run_dir / "config.yaml").write_text("frontend:\n  smoothing:\n    enabled: true\n")
+    with pytest.raises(SystemExit, match=r"run: its trajectory.txt is smoothed already"):
+        scores(synthetic_sequence_dir, run_dir)
+    (run_dir / "config.yaml").write_text("frontend:\n  smoothing:\n    enabled: false\n")
     with pytest.raises(SystemExit, match=r"run: 2 frames lost, and the run folder does not say which"):
         scores(synthetic_sequence_dir, run_dir)
 

@@ -86,9 +86,10 @@ def test_noisy_poses_on_a_smooth_path_move_towards_it_keyframes_and_untracked_fr
 
 @pytest.mark.slow
 def test_a_run_writes_its_trajectory_smoothed_about_the_keyframes_it_lists(tmp_path, monkeypatch):
-    """``tambridge reconstruct --set frontend.smoothing.enabled=true`` writes what the stage gives: trajectory.txt is
-    the frontend's result smoothed about the keyframes keyframes.txt lists, their rows as tracked, and on a noisy
-    sequence its error against the exact ground truth is lower than the frontend's."""
+    """By default ``tambridge reconstruct`` writes what the stage gives: trajectory.txt is the frontend's result
+    smoothed about the keyframes keyframes.txt lists, their rows as tracked, and on a noisy sequence its error
+    against the exact ground truth is lower than the frontend's. ``--set frontend.smoothing.enabled=false`` writes
+    the frontend's result as it is."""
     import pipelines.reconstruct as pipeline
     from tambridge.config import load_config
     from tambridge.evaluation.metrics import read_metrics
@@ -99,23 +100,24 @@ def test_a_run_writes_its_trajectory_smoothed_about_the_keyframes_it_lists(tmp_p
 
     given = []
 
-    def recorded(result, config, scene_depth_m):
-        given.append(result)
-        return smoothed_result(result, config, scene_depth_m)
+    def recorded(result, config, scene_depths_m):
+        given.append((result, scene_depths_m))
+        return smoothed_result(result, config, scene_depths_m)
 
     monkeypatch.setattr(pipeline, "smoothed_result", recorded)
     sequence = tmp_path / "noisy"
     write_synthetic_sequence(sequence, SynthOptions(frame_count=40, depth_noise_m=0.003, colour_noise=0.01))
     options = ["mapper.enabled=false", "mesh.enabled=false", "frontend.orb.mapping_thread=false",
-               "frontend.smoothing.enabled=true", "export.world=first_camera"]
+               "export.world=first_camera"]
     pipeline.reconstruct(sequence, tmp_path / "run", load_config(None, options), progress=False)
-    (tracked,) = given
+    ((tracked, scene_depths_m),) = given
     written = read_tum_trajectory(tmp_path / "run" / "trajectory.txt").world_from_camera
     keyframes = read_tum_trajectory(tmp_path / "run" / "keyframes.txt")
     fixed = np.isin(tracked.trajectory.timestamps_s, keyframes.timestamps_s)
     assert 2 <= fixed.sum() < len(written) - 10
     whole = smoothed_trajectory(tracked.trajectory, fixed, tracked.tracked, SmoothingConfig())
     depths_m = [median_depth_m(open_sequence(sequence).frame_depth_m(row)) for row in range(len(written))]
+    np.testing.assert_array_equal(scene_depths_m, depths_m)  # recorded while tracking, as the frames were read
     expected = along_image_ambiguity(tracked.trajectory.world_from_camera, whole.world_from_camera, depths_m)
     np.testing.assert_allclose(written, expected, atol=1e-6)
     np.testing.assert_allclose(written[fixed], tracked.trajectory.world_from_camera[fixed], atol=1e-6)
@@ -124,6 +126,13 @@ def test_a_run_writes_its_trajectory_smoothed_about_the_keyframes_it_lists(tmp_p
     tracked_errors = evaluate_trajectory(tracked.trajectory, open_sequence(sequence).ground_truth, align="se3")
     assert smoothed_errors.ate_rmse_m < tracked_errors.ate_rmse_m
     assert smoothed_errors.rpe_trans_rmse_m < 0.9 * tracked_errors.rpe_trans_rmse_m
+
+    given.clear()
+    unsmoothed = load_config(None, [*options, "frontend.smoothing.enabled=false"])
+    pipeline.reconstruct(sequence, tmp_path / "tracked", unsmoothed, progress=False)
+    ((tracked, _),) = given
+    np.testing.assert_allclose(read_tum_trajectory(tmp_path / "tracked" / "trajectory.txt").world_from_camera,
+                               tracked.trajectory.world_from_camera, atol=1e-6)
 
 
 def test_the_smoothed_path_turns_with_the_world_and_with_the_camera():
@@ -153,21 +162,18 @@ def test_the_result_is_smoothed_about_its_keyframes_only_when_enabled():
     keyframes = Trajectory(times_s[::6], trajectory.world_from_camera[::6])
     result = FrontendResult(trajectory, np.ones(30, bool), keyframes, {}, {}, np.zeros((0, 3)),
                             np.zeros((0, 3), np.uint8), np.zeros(0, np.int64), {}, 0, 0, 0)
-    assert smoothed_result(result, SmoothingConfig(), np.ones(30).__getitem__) is result
-    asked = []
-    smoothed = smoothed_result(result, SmoothingConfig(enabled=True, along_image_ambiguity=False),
-                               asked.append).trajectory.world_from_camera
-    assert not asked  # the depths are read only for the change along the ambiguity
+    assert smoothed_result(result, SmoothingConfig(enabled=False), np.ones(30)) is result
+    # The depths count only for the change along the ambiguity.
+    smoothed = smoothed_result(result, SmoothingConfig(along_image_ambiguity=False),
+                               np.full(30, np.nan)).trajectory.world_from_camera
     np.testing.assert_array_equal(smoothed[::6], trajectory.world_from_camera[::6])
     others = np.arange(30) % 6 != 0
     assert (np.abs(smoothed[others] - trajectory.world_from_camera[others]).max(axis=(1, 2)) > 1e-6).all()
 
     depths_m = rng.uniform(0.5, 2.0, 30)
     depths_m[7] = np.nan  # a frame that measured no depth
-    asked = []
-    along = smoothed_result(result, SmoothingConfig(enabled=True),
-                            lambda row: asked.append(row) or depths_m[row]).trajectory.world_from_camera
-    assert asked == list(np.flatnonzero(others))  # keyframes do not move: their depth is not read
+    depths_m[6] = 50.0  # a keyframe's: it does not move, and its depth does not fill the others'
+    along = smoothed_result(result, SmoothingConfig(), depths_m).trajectory.world_from_camera
     filled = np.where(np.isnan(depths_m), np.nanmedian(depths_m[others]), depths_m)
     np.testing.assert_allclose(along[others], along_image_ambiguity(
         trajectory.world_from_camera[others], smoothed[others], filled[others]), atol=1e-12)
