@@ -33,23 +33,17 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
     items.sort(key=lambda item: item.path in _slow_modules)
 
 
-def pytest_sessionstart(session: pytest.Session) -> None:
-    """A second process compiles numba's kernels into its on-disk cache (tests/kernel_warm_up.py) while the tests are
-    collected and the first ones run on the other core: on a clean clone compiling takes minutes of one core, which
-    the whole runs would otherwise wait for where each first needs a kernel. It starts before collection (about 10
-    s) so that it is ahead of the first tests that need the kernels."""
-    global _kernel_warm_up
-    folder = Path(tempfile.mkdtemp(prefix="tambridge_kernels_"))
-    process = subprocess.Popen([sys.executable, "-m", "tests.kernel_warm_up", str(folder)], cwd=ROOT,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                               env=dict(os.environ, PYTHONPATH=str(ROOT)))
-    _kernel_warm_up = process, folder
-
-
 def pytest_collection_finish(session: pytest.Session) -> None:
-    """The warm-up goes on only where many slow tests are selected; for a few tests it would cost more than it saves."""
-    if sum(item.get_closest_marker("slow") is not None for item in session.items) < KERNEL_WARM_UP_MIN_SLOW_TESTS:
-        _stop_kernel_warm_up()
+    """Where many slow tests are selected, a second process compiles numba's kernels into its on-disk cache
+    (tests/kernel_warm_up.py) while the first tests run on the other core: on a clean clone compiling takes minutes of
+    one core, which the whole runs would otherwise wait for where each first needs a kernel."""
+    global _kernel_warm_up
+    if sum(item.get_closest_marker("slow") is not None for item in session.items) >= KERNEL_WARM_UP_MIN_SLOW_TESTS:
+        folder = Path(tempfile.mkdtemp(prefix="tambridge_kernels_"))
+        process = subprocess.Popen([sys.executable, "-m", "tests.kernel_warm_up", str(folder)], cwd=ROOT,
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                   env=dict(os.environ, PYTHONPATH=str(ROOT)))
+        _kernel_warm_up = process, folder
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
@@ -63,17 +57,11 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
-    _stop_kernel_warm_up()
-
-
-def _stop_kernel_warm_up() -> None:
-    global _kernel_warm_up
     if _kernel_warm_up is not None:
         process, folder = _kernel_warm_up
         process.kill()
         process.wait()
         shutil.rmtree(folder, ignore_errors=True)
-        _kernel_warm_up = None
 
 
 @pytest.fixture(scope="session")

@@ -1,6 +1,5 @@
 """Benchmarks that reach into the pipeline (they wrap its stages to score more than a run does) still run against
-it: a short synthetic through ``benchmarks/sharp_splats.py``'s child run, benchmarks/dense_tracking.py's lost-frame
-diagnosis on the synthetic loop."""
+it: a short synthetic through ``benchmarks/sharp_splats.py``'s child run."""
 
 import json
 import subprocess
@@ -212,30 +211,3 @@ def test_smoothing_benchmark_moves_the_ground_truth_into_the_run_by_poses_not_po
     np.testing.assert_array_equal(moved.timestamps_s, frame_stamps[inside])
     # Interpolated 10 ms from a sample, the turning path is off by its curvature over that step only.
     np.testing.assert_allclose(moved.world_from_camera, frames.world_from_camera[inside], atol=1e-5)
-
-
-def test_lost_frames_of_a_fast_camera_are_placed_from_the_ground_truth_pose(synthetic_sequence_dir):
-    """dense_tracking.py --lost-priors on every 4th frame of the synthetic loop, from the second: tracking loses
-    frames whose prior is far off; searched from the ground-truth pose (put into the run's world through the first
-    tracked frame) the same local map places them near the truth, so the image was not the cause."""
-    import numpy as np
-
-    from benchmarks.dense_tracking import lost_frame_priors, orb_config
-    from tambridge.geometry import inverse, rotation_angle_deg
-    from tambridge.io.tum import open_sequence
-
-    sequence = open_sequence(synthetic_sequence_dir)
-    frames = [sequence[index] for index in range(1, len(sequence), 4)]
-    diagnosis = lost_frame_priors(frames, sequence, orb_config([]))
-    lost = diagnosis["lost"]
-    assert len(lost) >= 2 and all(row["prior_error_cm"] > 10.0 for row in lost)
-    placed = [row["from_ground_truth"] for row in lost if row["from_ground_truth"]["inliers"] >= 30]
-    assert placed and all(fix["error_cm"] < 3.0 for fix in placed)
-    assert all(row["final_error_cm"] > 5.0 for row in lost) and diagnosis["lost_frames_over_5cm"] == len(lost)
-    # The first lost frame follows the one tracked frame, which leaves no velocity: its prior is that frame's pose, so
-    # the prior is off by the whole step the camera took between them (frames 1 and 5 of the loop).
-    truth = sequence.ground_truth.world_from_camera
-    step = inverse(truth[1]) @ truth[5]
-    assert (lost[0]["position"], lost[0]["after"]) == (1, "tracked")
-    assert lost[0]["prior_error_cm"] == pytest.approx(100 * np.linalg.norm(step[:3, 3]), abs=0.5)
-    assert lost[0]["prior_error_deg"] == pytest.approx(rotation_angle_deg(step), abs=0.5)

@@ -1,16 +1,16 @@
 """The benchmarks' sequence lookup (--data folders, a one-line message for a missing one), their row merging,
-benchmarks/loops.py's ground-truth revisits and benchmarks/dense_tracking.py's longer exposures and the summary of
-its lost-frame diagnosis (the diagnosis itself runs in test_benchmark_runs.py, with the tracker's kernels)."""
+benchmarks/loops.py's ground-truth revisits and benchmarks/dense_tracking.py's longer exposures and lost-frame
+diagnosis."""
 
 import numpy as np
 import pytest
 
-from benchmarks.dense_tracking import longer_exposure, lost_priors_summary
+from benchmarks.dense_tracking import longer_exposure, lost_frame_priors, lost_priors_summary, orb_config
 from benchmarks.loops import relative_drift_m, revisits
 from benchmarks.run_all import sequence_order
 from benchmarks.sequences import FR1_XYZ, MissingSequence, find_sequence, merge_rows
-from tambridge.geometry import exp_se3
-from tambridge.io.tum import Frame
+from tambridge.geometry import exp_se3, inverse, rotation_angle_deg
+from tambridge.io.tum import Frame, open_sequence
 
 
 def _sequence(folder):
@@ -75,6 +75,27 @@ def test_a_longer_exposure_is_the_mean_of_the_frames_around_one_with_its_own_dep
     # At the ends the window is cut: frame 0 takes frames 0 and 1.
     np.testing.assert_array_equal(longer_exposure(frames, 0, 3).rgb, np.full((2, 3, 3), 5, np.uint8))
     assert longer_exposure(frames, 4, 1) is frames[4]
+
+
+def test_lost_frames_of_a_fast_camera_are_placed_from_the_ground_truth_pose(synthetic_sequence_dir):
+    """dense_tracking.py --lost-priors on every 4th frame of the synthetic loop, from the second: tracking loses
+    frames whose prior is far off; searched from the ground-truth pose (put into the run's world through the first
+    tracked frame) the same local map places them near the truth, so the image was not the cause."""
+    sequence = open_sequence(synthetic_sequence_dir)
+    frames = [sequence[index] for index in range(1, len(sequence), 4)]
+    diagnosis = lost_frame_priors(frames, sequence, orb_config([]))
+    lost = diagnosis["lost"]
+    assert len(lost) >= 2 and all(row["prior_error_cm"] > 10.0 for row in lost)
+    placed = [row["from_ground_truth"] for row in lost if row["from_ground_truth"]["inliers"] >= 30]
+    assert placed and all(fix["error_cm"] < 3.0 for fix in placed)
+    assert all(row["final_error_cm"] > 5.0 for row in lost) and diagnosis["lost_frames_over_5cm"] == len(lost)
+    # The first lost frame follows the one tracked frame, which leaves no velocity: its prior is that frame's pose, so
+    # the prior is off by the whole step the camera took between them (frames 1 and 5 of the loop).
+    truth = sequence.ground_truth.world_from_camera
+    step = inverse(truth[1]) @ truth[5]
+    assert (lost[0]["position"], lost[0]["after"]) == (1, "tracked")
+    assert lost[0]["prior_error_cm"] == pytest.approx(100 * np.linalg.norm(step[:3, 3]), abs=0.5)
+    assert lost[0]["prior_error_deg"] == pytest.approx(rotation_angle_deg(step), abs=0.5)
 
 
 def test_the_lost_priors_summary_counts_placed_frames_and_those_near_the_truth():
