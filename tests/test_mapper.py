@@ -446,8 +446,8 @@ def test_reconstruct_writes_splats_and_rendering_metrics(synthetic_sequence_dir,
     assert rendering.novel_views.lpips is None and rendering.mapping_views.lpips is None
     # As exported (splats.ply and trajectory.txt read back, no exposure): the same novel views, in true colour (the
     # synthetic camera's exposure never changes). trajectory.txt holds the frontend's poses (smoothed between
-    # keyframes), from which the bridge moved the views the map was built at (by centimetres under this drifting odometry): the file renders worse at
-    # them than the run's own scores; the bound lies 1 dB under this run's score.
+    # keyframes), from which the bridge moved the views the map was built at (by centimetres under this drifting
+    # odometry): the file renders worse at them than the run's own scores; the bound lies 1 dB under this run's score.
     exported = rendering.novel_views_exported
     assert exported.frames == len(novel)
     assert exported.psnr_db > 16.7

@@ -166,6 +166,8 @@ def test_the_result_is_smoothed_about_its_keyframes_only_when_enabled():
     # The depths count only for the change along the ambiguity.
     smoothed = smoothed_result(result, SmoothingConfig(along_image_ambiguity=False),
                                np.full(30, np.nan)).trajectory.world_from_camera
+    np.testing.assert_array_equal(smoothed, smoothed_trajectory(trajectory, np.arange(30) % 6 == 0, np.ones(30, bool),
+                                                                SmoothingConfig()).world_from_camera)
     np.testing.assert_array_equal(smoothed[::6], trajectory.world_from_camera[::6])
     others = np.arange(30) % 6 != 0
     assert (np.abs(smoothed[others] - trajectory.world_from_camera[others]).max(axis=(1, 2)) > 1e-6).all()

@@ -49,6 +49,7 @@ logger = logging.getLogger(__name__)
 class SmoothingConfig:
     """The motion model the final trajectory is smoothed under (module docstring)."""
 
+    # On by default: nearer a motion capture, for a few hundredths of a dB in renders at the poses (docs/benchmarks.md).
     enabled: bool = setting(True, "smooth the final trajectory's frames between keyframes under a motion model")
     position_sigma_m: float = setting(0.002, "noise of a tracked frame's position (m)", POSITIVE)
     acceleration_sigma_m_s2: float = setting(2.0, "the camera's acceleration the motion model expects (m/s^2)",
