@@ -75,7 +75,8 @@ def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
     if len(tracked) != len(sequence):
         raise SystemExit(f"error: {run_dir / 'trajectory.txt'}: {len(tracked)} poses for {len(sequence)} frames of "
                          f"{sequence_dir}; give a run of every frame (no --set input.stride or input.max_frames)")
-    if _run_config(run_dir).frontend.smoothing.enabled:
+    run_config = _run_config(run_dir)
+    if run_config.frontend.smoothing.enabled:
         raise SystemExit(f"error: {run_dir}: its trajectory.txt is smoothed already (config.yaml: "
                          "frontend.smoothing.enabled: true); give a run made with "
                          "--set frontend.smoothing.enabled=false")
@@ -94,7 +95,7 @@ def scores(sequence_dir: Path, run_dir: Path) -> list[dict]:
     truth = ground_truth_in_run(sequence.ground_truth, tracked)
     frames = [index for index in range(0, len(sequence), EVERY)
               if not fixed[index] and tracked.timestamps_s[index] in truth.timestamps_s]
-    exported = ExportedMap.from_run(run_dir, mapper=_run_config(run_dir).mapper)
+    exported = ExportedMap.from_run(run_dir, mapper=run_config.mapper)
     rows = []
     for name, trajectory in (("tracked", tracked), ("smoothed", smoothed),
                              ("smoothed along the image ambiguity", along), ("ground truth", truth)):

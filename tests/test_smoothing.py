@@ -116,14 +116,15 @@ def test_a_run_writes_its_trajectory_smoothed_about_the_keyframes_it_lists(tmp_p
     fixed = np.isin(tracked.trajectory.timestamps_s, keyframes.timestamps_s)
     assert 2 <= fixed.sum() < len(written) - 10
     whole = smoothed_trajectory(tracked.trajectory, fixed, tracked.tracked, SmoothingConfig())
-    depths_m = [median_depth_m(open_sequence(sequence).frame_depth_m(row)) for row in range(len(written))]
+    opened = open_sequence(sequence)
+    depths_m = [median_depth_m(opened.frame_depth_m(row)) for row in range(len(written))]
     np.testing.assert_array_equal(scene_depths_m, depths_m)  # recorded while tracking, as the frames were read
     expected = along_image_ambiguity(tracked.trajectory.world_from_camera, whole.world_from_camera, depths_m)
     np.testing.assert_allclose(written, expected, atol=1e-6)
     np.testing.assert_allclose(written[fixed], tracked.trajectory.world_from_camera[fixed], atol=1e-6)
     assert np.abs(written[~fixed] - tracked.trajectory.world_from_camera[~fixed]).max() > 1e-4
     smoothed_errors = read_metrics(tmp_path / "run" / "metrics.json").trajectory
-    tracked_errors = evaluate_trajectory(tracked.trajectory, open_sequence(sequence).ground_truth, align="se3")
+    tracked_errors = evaluate_trajectory(tracked.trajectory, opened.ground_truth, align="se3")
     assert smoothed_errors.ate_rmse_m < tracked_errors.ate_rmse_m
     assert smoothed_errors.rpe_trans_rmse_m < 0.9 * tracked_errors.rpe_trans_rmse_m
 
