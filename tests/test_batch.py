@@ -170,42 +170,6 @@ def test_a_cluster_that_cannot_be_joined_stops_the_batch_before_it_writes(sequen
     assert len(batch.stderr.strip().splitlines()) == 1 and not out_dir.exists()
 
 
-@pytest.mark.slow
-def test_a_corrupt_sequence_fails_alone_and_the_batch_says_so(sequences, tmp_path):
-    out_dir = tmp_path / "out"
-    names = ("first", "corrupt")  # two runs: one round of a local Ray on two cores
-    # A preset by name, from a folder outside the checkout: the batch gives each run the checkout's file.
-    batch = subprocess.run(_batch_command([sequences[name] for name in names], out_dir, "--retries", "1",
-                                          "--config", "fast"),
-                           cwd=tmp_path, env=_environment(), capture_output=True, text=True, timeout=300)
-
-    assert batch.returncode == 1, batch.stderr
-    assert "error: 1 of 2 sequences failed" in batch.stderr
-    assert "failed: corrupt: " in batch.stderr and "cannot decode image" in batch.stderr
-    rows = _summary(out_dir)
-    assert list(rows) == list(names)
-    assert json.loads((out_dir / "summary.json").read_text())["config"] == str((ROOT / "configs" / "fast.yaml").resolve())
-    fast = yaml.safe_load((ROOT / "configs" / "fast.yaml").read_text())
-    assert fast["mapper"]["iterations"] != load_config(None, []).mapper.iterations  # the preset is seen in the runs
-    row, metrics = rows["first"], read_metrics(out_dir / "first" / "metrics.json")
-    config = yaml.safe_load((out_dir / "first" / "config.yaml").read_text())
-    assert all(config[section][key] == value for section, settings in fast.items() for key, value in settings.items())
-    assert (row["status"], row["attempts"], row["error"]) == ("finished", 1, None)
-    assert (row["frames"], row["keyframes"]) == (SHORT_FRAMES, metrics.keyframes)
-    assert row["ate_rmse_m"] == metrics.trajectory.ate_rmse_m
-    assert row["rpe_trans_rmse_m"] == metrics.trajectory.rpe_trans_rmse_m
-    assert row["psnr_db"] is None and row["ssim"] is None  # the mapper is off
-    assert row["fps"] == metrics.fps_end_to_end and row["peak_memory_mb"] == metrics.peak_memory_mb
-    assert row["node"] == socket.gethostname() and row["wall_s"] > metrics.seconds_total
-    assert row["report"] == "first/report/index.html"
-    assert '<a href="first/report/index.html">first</a>' in (out_dir / "index.html").read_text()
-    corrupt = rows["corrupt"]
-    # The run refused its input: another attempt would refuse it again.
-    assert (corrupt["status"], corrupt["attempts"], corrupt["frames"]) == ("failed", 1, None)
-    assert str(sequences["corrupt"] / "rgb") in corrupt["error"] and "cannot decode image" in corrupt["error"]
-    assert not (out_dir / "corrupt" / "metrics.json").exists()
-
-
 def _processes_naming(folder: Path) -> list[int]:
     """The processes whose command line names ``folder`` (Linux: read from /proc)."""
     found = []
@@ -226,9 +190,9 @@ def _wait_for(condition, timeout_s: float, what: str) -> None:
 
 
 @pytest.mark.slow
-def test_a_killed_batch_reruns_only_what_did_not_finish(sequences, tmp_path):
+def test_a_killed_batch_reruns_only_what_did_not_finish_and_a_corrupt_sequence_fails_alone(sequences, tmp_path):
     out_dir = tmp_path / "out"
-    names = ("first", "long", "second")
+    names = ("first", "long", "second", "corrupt")
     command = _batch_command([sequences[name] for name in names], out_dir, "--set", "checkpoint.every_keyframes=2",
                              "--set", "checkpoint.min_interval_s=0")
     driver = subprocess.Popen(command, cwd=ROOT, env=_environment(), stdout=subprocess.DEVNULL,
@@ -253,14 +217,22 @@ def test_a_killed_batch_reruns_only_what_did_not_finish(sequences, tmp_path):
 
     rerun = subprocess.run(command, cwd=ROOT, env=_environment(), capture_output=True, text=True, timeout=300)
 
-    assert rerun.returncode == 0, rerun.stderr
+    assert rerun.returncode == 1, rerun.stderr
+    assert "error: 1 of 4 sequences failed" in rerun.stderr
+    assert "failed: corrupt: " in rerun.stderr and "cannot decode image" in rerun.stderr
     rows = _summary(out_dir)
+    assert list(rows) == list(names)
     assert {name: row["status"] for name, row in rows.items()} == {
-        name: "skipped" if name in finished else "finished" for name in names}
+        name: "failed" if name == "corrupt" else "skipped" if name in finished else "finished" for name in names}
+    corrupt = rows.pop("corrupt")
+    # The run refused its input: another attempt (the default allows two) would refuse it again.
+    assert (corrupt["attempts"], corrupt["frames"]) == (1, None)
+    assert str(sequences["corrupt"] / "rgb") in corrupt["error"] and "cannot decode image" in corrupt["error"]
+    assert not (out_dir / "corrupt" / "metrics.json").exists()
     assert rows["long"]["resumed"] is True and rows["long"]["frames"] == LONG_FRAMES
     assert "resuming at frame" in (out_dir / "long" / "run.log").read_text()
     assert {path: path.stat().st_mtime_ns for path in modified} == modified
-    for name in names:
+    for name in rows:
         assert read_metrics(out_dir / name / "metrics.json").frames == rows[name]["frames"]
 
 
@@ -326,9 +298,10 @@ def test_a_batch_runs_on_a_ray_cluster_made_with_ray_start(sequences, tmp_path):
         nodes.append(_ray_start([f"--address={address}", f"--node-ip-address={worker_ip}",
                                  *node_ports(f"{WORKER_PORTS[50]}-{WORKER_PORTS[-1]}")], tmp_path / "worker.log", environment))
         out_dir = tmp_path / "out"
+        # A preset by name, from a folder outside the checkout: the batch gives each run the checkout's file.
         batch = subprocess.run(_batch_command([sequences["first"], sequences["second"]], out_dir, "--address", address,
-                                              "--cpus-per-run", "1"),
-                               cwd=ROOT, env=environment, capture_output=True, text=True, timeout=300)
+                                              "--cpus-per-run", "1", "--config", "fast"),
+                               cwd=tmp_path, env=environment, capture_output=True, text=True, timeout=300)
         listing = subprocess.run(
             [sys.executable, "-c", "import json, ray; ray.init(address=%r, log_to_driver=False); "
              "print(json.dumps({n['NodeID']: n['NodeManagerAddress'] for n in ray.nodes() if n['Alive']}))" % address],
@@ -345,7 +318,22 @@ def test_a_batch_runs_on_a_ray_cluster_made_with_ray_start(sequences, tmp_path):
     assert [row["status"] for row in rows.values()] == ["finished", "finished"]
     # One CPU a node and one a run: the two runs ran at once, one on each node.
     assert sorted(cluster[row["node_id"]] for row in rows.values()) == [head_ip, worker_ip]
-    assert all(row["node"] == socket.gethostname() for row in rows.values())
+    assert json.loads((out_dir / "summary.json").read_text())["config"] == str((ROOT / "configs" / "fast.yaml").resolve())
+    fast = yaml.safe_load((ROOT / "configs" / "fast.yaml").read_text())
+    assert fast["mapper"]["iterations"] != load_config(None, []).mapper.iterations  # the preset is seen in the runs
+    for name, row in rows.items():
+        metrics = read_metrics(out_dir / name / "metrics.json")
+        config = yaml.safe_load((out_dir / name / "config.yaml").read_text())
+        assert all(config[section][key] == value for section, settings in fast.items() for key, value in settings.items())
+        assert (row["attempts"], row["error"]) == (1, None)
+        assert (row["frames"], row["keyframes"]) == (SHORT_FRAMES, metrics.keyframes)
+        assert row["ate_rmse_m"] == metrics.trajectory.ate_rmse_m
+        assert row["rpe_trans_rmse_m"] == metrics.trajectory.rpe_trans_rmse_m
+        assert row["psnr_db"] is None and row["ssim"] is None  # the mapper is off
+        assert row["fps"] == metrics.fps_end_to_end and row["peak_memory_mb"] == metrics.peak_memory_mb
+        assert row["node"] == socket.gethostname() and row["wall_s"] > metrics.seconds_total
+        assert row["report"] == f"{name}/report/index.html"
+        assert f'<a href="{name}/report/index.html">{name}</a>' in (out_dir / "index.html").read_text()
 
 
 def test_a_finished_run_is_skipped_only_as_the_same_sequence_with_the_same_settings(synthetic_sequence_dir, tmp_path):
