@@ -2,7 +2,6 @@
 
     python benchmarks/run_all.py --data ../shared/data                 # first: the runs this reads
     python benchmarks/reference_agreement.py                           # 7-Scenes redkitchen 0-699
-    python benchmarks/reference_agreement.py --focal-lengths 570,585,600,615,630   # + ORB tracking at other fx
 
 7-Scenes' ground truth is KinectFusion's trajectory (depth-only ICP against a TSDF), a pseudo ground truth: Brachmann
 et al. (ICCV 2021, "On the limits of pseudo ground truth in visual camera re-localisation") showed that on 7-Scenes
@@ -13,27 +12,22 @@ with BA, and COLMAP's SIFT incremental SfM on colour alone) agree far better tha
 truth, and their errors against it point the same way, the remaining ATE is a property of the reference (or of the
 camera model every method shares), not of the tracker.
 
-``--focal-lengths`` re-runs tambridge's ORB tracking (no mapping) with the depth camera's fx = fy set to each value
-and reports its SE(3) ATE: how much the published 585 px, which no calibration of this Kinect confirms, moves the
-figure. Prints tables and writes benchmarks/results/reference_agreement.json.
+How the camera model every method shares moves the figure (the focal lengths of the depth and colour cameras):
+`camera_sweep.py`. Prints tables and writes benchmarks/results/reference_agreement.json.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.sequences import camera_file_for  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.trajectory import Trajectory, read_tum_trajectory  # noqa: E402
@@ -76,24 +70,6 @@ def agreement(trajectories: dict[str, Trajectory], ground_truth: Trajectory) -> 
     return {"ate_cm": ate_cm, "error_correlation": correlation}
 
 
-def ate_at_focal_length(sequence: Path, ground_truth: Trajectory, camera_file: Path, focal_length_px: float,
-                        work: Path) -> dict:
-    """SE(3) ATE (cm) and RPE of ORB tracking alone with the depth camera's fx = fy = ``focal_length_px``."""
-    camera = yaml.safe_load(camera_file.read_text())
-    camera["fx"] = camera["fy"] = float(focal_length_px)
-    moved_camera = work / f"camera_fx{focal_length_px:g}.yaml"
-    moved_camera.write_text(yaml.safe_dump(camera))
-    out = work / f"fx{focal_length_px:g}"
-    subprocess.run([sys.executable, str(ROOT / "cli.py"), "reconstruct", str(sequence), "-o", str(out), "--camera",
-                    str(moved_camera), "--quiet", "--set", "mapper.enabled=false", "--set", "mesh.enabled=false"],
-                   cwd=ROOT, check=True)
-    trajectory = read_tum_trajectory(out / "trajectory.txt")
-    se3 = evaluate_trajectory(trajectory, ground_truth, align="se3")
-    sim3 = evaluate_trajectory(trajectory, ground_truth, align="sim3")
-    return {"fx_px": focal_length_px, "ate_se3_cm": 100.0 * se3.ate_rmse_m, "ate_sim3_cm": 100.0 * sim3.ate_rmse_m,
-            "sim3_scale": sim3.scale, "rpe_cm": 100.0 * se3.rpe_trans_rmse_m}
-
-
 def print_matrix(title: str, matrix: dict, format_spec: str) -> None:
     columns = list(next(iter(matrix.values())))
     print(f"\n{title}\n| | " + " | ".join(columns) + " |\n|---|" + "---|" * len(columns))
@@ -105,7 +81,6 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sequence", type=Path, default=DEFAULT_SEQUENCE)
     parser.add_argument("--runs", type=Path, default=RUNS, help="run_all's output folders")
-    parser.add_argument("--focal-lengths", default="", help="comma-separated fx values (px) to track with")
     arguments = parser.parse_args()
     sequence = arguments.sequence
     ground_truth = read_tum_trajectory(sequence / "groundtruth.txt")
@@ -120,17 +95,6 @@ def main() -> None:
     print(f"{sequence.name}: {len(frames_s)} frames (those COLMAP registered), Sim(3)-aligned")
     print_matrix("ATE RMSE between trajectories (cm), the row's aligned onto the column's", result["ate_cm"], ".2f")
     print_matrix("correlation of position errors against the ground truth", result["error_correlation"], ".3f")
-    if arguments.focal_lengths:
-        camera_file = camera_file_for(sequence)
-        if camera_file is None:
-            parser.error(f"--focal-lengths needs a camera YAML for {sequence.name}: add it to benchmarks/sequences.py")
-        with tempfile.TemporaryDirectory(prefix="tambridge-fx-") as work:
-            rows = [ate_at_focal_length(sequence, ground_truth, camera_file, float(value), Path(work))
-                    for value in arguments.focal_lengths.split(",")]
-        result["focal_length_sweep"] = rows
-        print(f"\nORB tracking, {sequence.name}, depth camera fx = fy varied\n| fx px | ATE SE(3) cm | ATE Sim(3) cm | Sim(3) scale | RPE cm |\n|---|---|---|---|---|")
-        for row in rows:
-            print(f"| {row['fx_px']:g} | {row['ate_se3_cm']:.2f} | {row['ate_sim3_cm']:.2f} | {row['sim3_scale']:.4f} | {row['rpe_cm']:.3f} |")
     atomic_write_text(ROOT / "benchmarks" / "results" / "reference_agreement.json", json.dumps(result, indent=2) + "\n")
 
 

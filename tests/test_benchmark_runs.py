@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -126,6 +127,30 @@ def test_tracking_budget_splits_the_cpu_per_frame_and_runs_the_pipeline(syntheti
     assert 0 < run["cores_busy"] <= row["cores"] + 0.5
     row["threaded_runs"] = [run]
     assert format_table(row).splitlines()[0].startswith("| reading ms |")
+
+
+def test_camera_sweep_changes_only_the_focal_lengths_it_names(tmp_path):
+    import dataclasses
+
+    from benchmarks.camera_sweep import changed_camera_values
+    from tambridge.camera import sensor_from_mapping
+
+    camera_file = ROOT / "configs" / "cameras" / "7scenes_kinect.yaml"
+    original = sensor_from_mapping(changed_camera_values(camera_file), camera_file)
+    colour = sensor_from_mapping(changed_camera_values(camera_file, colour_focal_factor=1.024), camera_file)
+    assert (colour.colour_camera.fx, colour.colour_camera.fy) == pytest.approx(
+        (1.024 * original.colour_camera.fx, 1.024 * original.colour_camera.fy), rel=1e-12)
+    assert dataclasses.replace(colour.colour_camera, fx=original.colour_camera.fx, fy=original.colour_camera.fy) \
+        == original.colour_camera
+    assert colour.camera == original.camera and (colour.depth_scale, colour.depth_invalid) == (1000.0, 65535)
+    np.testing.assert_array_equal(colour.colour_from_depth, original.colour_from_depth)
+    depth = sensor_from_mapping(changed_camera_values(camera_file, depth_fx=600.0), camera_file)
+    assert dataclasses.replace(depth.camera, fx=585.0, fy=585.0) == original.camera and depth.camera.fx == 600.0
+    assert depth.colour_camera == original.colour_camera
+    registered = tmp_path / "registered.yaml"
+    registered.write_text("width: 640\nheight: 480\nfx: 525\nfy: 525\ncx: 320\ncy: 240\n")
+    with pytest.raises(SystemExit, match=r"registered\.yaml: has no colour camera"):
+        changed_camera_values(registered, colour_focal_factor=1.1)
 
 
 def test_sped_up_sequence_keeps_every_nth_frame_as_the_mean_of_its_exposure(synthetic_sequence_dir, tmp_path):
