@@ -44,7 +44,7 @@ def changed_camera_values(camera_file: Path, colour_focal_factor: float = 1.0, d
     camera's ``fx = fy = depth_fx`` (None: as it is)."""
     values = yaml.safe_load(Path(camera_file).read_text())
     if colour_focal_factor != 1.0:
-        if "colour_fx" not in values:
+        if "colour_fx" not in values or "colour_fy" not in values:
             raise SystemExit(f"error: {camera_file}: has no colour camera (colour_fx, colour_fy) to scale")
         values["colour_fx"] = float(values["colour_fx"]) * colour_focal_factor
         values["colour_fy"] = float(values["colour_fy"]) * colour_focal_factor
@@ -96,11 +96,14 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "camera_sweep.json")
     args = parser.parse_args()
     if any(value <= 0 for value in (*args.colour_focal_factors, *args.depth_fx)):
-        parser.error("--colour-focal-factors and --depth-fx must be positive")
+        raise SystemExit("error: --colour-focal-factors and --depth-fx take positive values")
+    if not args.colour_focal_factors and not args.depth_fx:
+        raise SystemExit("error: nothing to sweep; give --colour-focal-factors or --depth-fx values")
     folder = find_sequence(args.sequence, args.data)
     camera_file = camera_file_for(folder)
     if camera_file is None:
-        parser.error(f"{folder.name}: no camera file to change (benchmarks/sequences.py CAMERA_FILES)")
+        raise SystemExit(f"error: {folder.name}: no camera file to change; add one to CAMERA_FILES in "
+                         "benchmarks/sequences.py")
     settings = [(f"colour focal x{factor:g}", changed_camera_values(camera_file, colour_focal_factor=factor))
                 for factor in args.colour_focal_factors]
     settings += [(f"depth fx {fx:g} px", changed_camera_values(camera_file, depth_fx=fx)) for fx in args.depth_fx]

@@ -145,7 +145,8 @@ def test_camera_sweep_changes_only_the_focal_lengths_it_names(tmp_path):
     assert colour.camera == original.camera and (colour.depth_scale, colour.depth_invalid) == (1000.0, 65535)
     np.testing.assert_array_equal(colour.colour_from_depth, original.colour_from_depth)
     depth = sensor_from_mapping(changed_camera_values(camera_file, depth_fx=600.0), camera_file)
-    assert dataclasses.replace(depth.camera, fx=585.0, fy=585.0) == original.camera and depth.camera.fx == 600.0
+    assert (depth.camera.fx, depth.camera.fy) == (600.0, 600.0)
+    assert dataclasses.replace(depth.camera, fx=585.0, fy=585.0) == original.camera
     assert depth.colour_camera == original.colour_camera
     registered = tmp_path / "registered.yaml"
     registered.write_text("width: 640\nheight: 480\nfx: 525\nfy: 525\ncx: 320\ncy: 240\n")
