@@ -34,6 +34,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.machine import describe_machine  # noqa: E402
 from benchmarks.sequences import DATA_FOLDERS, KITCHEN, camera_file_for, find_sequence  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
+from tambridge.trajectory import Trajectory, read_tum_trajectory  # noqa: E402
 
 DEFAULT_COLOUR_FOCAL_FACTORS = (0.976, 0.988, 1.0, 1.012, 1.024, 1.048)
 TRACKING_ONLY = ("mapper.enabled=false", "mesh.enabled=false", "frontend.orb.mapping_thread=false")
@@ -53,10 +54,10 @@ def changed_camera_values(camera_file: Path, colour_focal_factor: float = 1.0, d
     return values
 
 
-def tracked_row(folder: Path, camera_values: dict, setting: str) -> dict:
-    """Track ``folder`` with a camera file of ``camera_values``; the errors, under ``setting`` (the row's name)."""
+def tracked_row(folder: Path, reference: Trajectory, camera_values: dict, setting: str) -> dict:
+    """Track ``folder`` with a camera file of ``camera_values``; its errors against ``reference`` (the folder's
+    ground truth), under ``setting`` (the row's name)."""
     from tambridge.evaluation.trajectory import evaluate_trajectory
-    from tambridge.trajectory import read_tum_trajectory
 
     with tempfile.TemporaryDirectory() as scratch:
         camera_file = Path(scratch) / "camera.yaml"
@@ -69,7 +70,6 @@ def tracked_row(folder: Path, camera_values: dict, setting: str) -> dict:
             last = (child.stderr.strip().splitlines() or ["no message"])[-1]
             raise SystemExit(f"error: {folder}: the run with {setting} failed (exit {child.returncode}): {last}")
         estimate = read_tum_trajectory(output / "trajectory.txt")
-    reference = read_tum_trajectory(folder / "groundtruth.txt")
     rigid = evaluate_trajectory(estimate, reference, align="se3")
     similar = evaluate_trajectory(estimate, reference, align="sim3")
     return {"setting": setting, "fx_px": camera_values["fx"], "colour_fx_px": camera_values.get("colour_fx"),
@@ -104,10 +104,14 @@ def main() -> None:
     if camera_file is None:
         raise SystemExit(f"error: {folder.name}: no camera file to change; add one to CAMERA_FILES in "
                          "benchmarks/sequences.py")
+    # Read once, before any run: a folder without ground truth stops here.
+    if not (folder / "groundtruth.txt").is_file():
+        raise SystemExit(f"error: {folder}: has no groundtruth.txt; the sweep scores each run against it")
+    reference = read_tum_trajectory(folder / "groundtruth.txt")
     settings = [(f"colour focal x{factor:g}", changed_camera_values(camera_file, colour_focal_factor=factor))
                 for factor in args.colour_focal_factors]
     settings += [(f"depth fx {fx:g} px", changed_camera_values(camera_file, depth_fx=fx)) for fx in args.depth_fx]
-    rows = [tracked_row(folder, values, setting) for setting, values in settings]
+    rows = [tracked_row(folder, reference, values, setting) for setting, values in settings]
     print(format_table(rows))
     document = {"sequence": folder.name, "camera_file": str(camera_file.relative_to(ROOT)), "rows": rows,
                 "date": datetime.datetime.now().isoformat(timespec="seconds"),
