@@ -20,7 +20,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from tambridge.camera import Camera, pinhole_numba, pinhole_ray_numba, rolling_shutter_row_times_s
+from tambridge.camera import Camera, pinhole_inverse_depth_numba, rolling_shutter_row_times_s
 from tambridge.geometry import exp_se3, log_se3
 
 ROW_TIME_ITERATIONS = 3
@@ -79,19 +79,21 @@ def _image_at_frame_time_kernel(rgb, depth_m, twist, readout_s, fx, fy, cx, cy):
     height, width = depth_m.shape
     out = np.empty_like(rgb)
     rho, phi = twist[:3], twist[3:]
+    # Divisions dominate this loop: reciprocals taken once, and one division per fixed-point step (1 / z).
+    inverse_fx, inverse_fy, inverse_height = 1.0 / fx, 1.0 / fy, 1.0 / height
     for row in range(height):
+        y = (row - cy) * inverse_fy
         for column in range(width):
             z = depth_m[row, column]
-            x, y = pinhole_ray_numba(float(column), float(row), fx, fy, cx, cy)
-            px, py, pz = x * z, y * z, z
+            px, py, pz = (column - cx) * inverse_fx * z, y * z, z
             # The point's motion per second in the camera: phi x p + rho.
             vx = phi[1] * pz - phi[2] * py + rho[0]
             vy = phi[2] * px - phi[0] * pz + rho[1]
             vz = phi[0] * py - phi[1] * px + rho[2]
             u, v = float(column), float(row)
             for _ in range(ROW_TIME_ITERATIONS):
-                dt = (v / height - 0.5) * readout_s
-                u, v = pinhole_numba(px + dt * vx, py + dt * vy, pz + dt * vz, fx, fy, cx, cy)
+                dt = (v * inverse_height - 0.5) * readout_s  # rolling_shutter_row_times_s
+                u, v = pinhole_inverse_depth_numba(px + dt * vx, py + dt * vy, 1.0 / (pz + dt * vz), fx, fy, cx, cy)
             u = min(max(u, 0.0), width - 1.0)
             v = min(max(v, 0.0), height - 1.0)
             left, top = min(int(u), width - 2), min(int(v), height - 2)

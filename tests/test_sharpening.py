@@ -15,7 +15,7 @@ from tambridge.gaussians.config import MapperConfig
 from tambridge.gaussians.mapper import GaussianMap, ViewExposure, ViewImages
 from tambridge.io.synthetic import default_camera
 from tambridge.io.tum import open_sequence
-from tambridge.mapping.stage import FrameBetween, MappingStage, frames_between_views, resize_frame
+from tambridge.mapping.stage import FrameBetween, MappingStage, frames_between_views, resize_frame, resized_frame
 from tambridge.runlog import RunLog
 from tambridge.threads import TORCH_THREADS, compute_threads
 from tests.test_exported import gained_sequence
@@ -101,6 +101,35 @@ def test_sharpening_reads_frames_again_at_its_resolution_a_chunk_at_a_time(synth
     # The learning rates fall linearly over the pass's four chunks, from 2 towards 0.4 times the online ones.
     np.testing.assert_allclose(scales, [2.0, 1.6, 1.2, 0.8])
 
+
+
+def test_sharpening_keeps_its_first_rounds_frames_within_budget_and_fits_the_same_map(synthetic_sequence_dir, tmp_path,
+                                                                                      monkeypatch):
+    """Frames kept from the first round spare the later rounds' reads (decoding, registration, the rolling shutter's
+    resampling) and are exactly the frames read again: the map after the pass is the same to the bit."""
+    sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
+    stage, _ = coarse_stage(sequence, tmp_path, window_size=3, iterations=2)
+    before = copy.deepcopy(stage.state_dict())
+    frame_bytes = resized_frame(sequence[0], 1.5).nbytes  # 240x180: colour uint8 and depth float32
+    assert frame_bytes == 240 * 180 * (3 + 4)
+    reads, maps = {}, {}
+    for kept_frames in (0, 2.5, 4):
+        stage.load_state_dict(copy.deepcopy(before))
+        stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=3,
+                                                  sharp_resolution_scale=1.5,
+                                                  sharp_frames_kept_mb=kept_frames * frame_bytes / 2**20)
+        at_frame_time = MappingStage.at_frame_time
+        read = []
+        monkeypatch.setattr(stage, "at_frame_time", lambda frame: read.append(frame.index) or at_frame_time(stage, frame))
+        stage.sharpen()
+        reads[kept_frames] = read
+        maps[kept_frames] = stage.map.gaussians()
+    # 4 views, three rounds: every view read each round; two kept (room for 2.5), read once; all four read once.
+    assert [len(reads[kept]) for kept in (0, 2.5, 4)] == [12, 8, 4]
+    assert sorted(set(reads[4])) == sorted(view.frame_index for view in stage.views)
+    for kept in (2.5, 4):
+        for name in ("means_m", "rgb", "log_radii_m", "opacity_logits"):
+            assert torch.equal(getattr(maps[kept], name), getattr(maps[0], name)), (kept, name)
 
 
 def test_sharpening_never_runs_coarser_than_the_mapping(synthetic_sequence_dir, tmp_path, monkeypatch):

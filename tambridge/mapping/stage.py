@@ -7,8 +7,9 @@ between keyframes and says when one shows too much the map does not explain; the
 for a keyframe, and such a keyframe is mapped even where eq. 3 finds it too similar to the previous one.
 ``MappingStage.finish`` moves every view to the frontend's final (loop-corrected) keyframe poses and runs a last
 pass over all views, then a sharpening pass at the camera's resolution over the views and some tracked frames
-between them (never one the evaluation holds out). Frames are not kept: a small cache holds the window's images at
-the mapping resolution and anything else (the sharpening pass's frames too) is read again from the sequence.
+between them (never one the evaluation holds out). Frames are not kept while tracking: a small cache holds the
+window's images at the mapping resolution and anything else is read again from the sequence; the sharpening pass
+keeps the frames of its first round for the later ones, up to ``mapper.sharp_frames_kept_mb``.
 
 Rendering poses. A mapping view's pose is its keyframe's pose times ``keyframe_from_view`` (the tracked offset of
 the frame it was mapped through, times the bridge's correction; identity with the bridge off), so frontend
@@ -65,11 +66,28 @@ def resize_depth(depth_m: np.ndarray, scale: float) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(depth_m))
 
 
-def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device("cpu"),
-                 valid_region: tuple[int, int, int, int] | None = None) -> ViewImages:
-    """A frame as mapper images at ``scale`` on ``device``: area-averaged colour, depth by :func:`resize_depth`.
-    ``valid_region`` (top, bottom, left, right at full resolution, as :attr:`RgbdSequence.valid_region`) marks
-    where the colour has data; None or the whole frame: everywhere."""
+@dataclasses.dataclass(frozen=True)
+class ResizedFrame:
+    """A frame resized for the mapper with its colour still as read: rgb8 (H, W, 3) uint8, depth_m (H, W) float32,
+    colour_valid (H, W) bool or None (see :class:`ViewImages`); under half the memory of its :class:`ViewImages`."""
+
+    rgb8: np.ndarray
+    depth_m: torch.Tensor
+    colour_valid: torch.Tensor | None
+
+    @property
+    def nbytes(self) -> int:
+        return self.rgb8.nbytes + self.depth_m.nbytes + (0 if self.colour_valid is None else self.colour_valid.nbytes)
+
+    def images(self, device: torch.device = torch.device("cpu")) -> ViewImages:
+        """The mapper's images (colour as float32 in [0, 1]) on ``device``."""
+        return ViewImages(torch.from_numpy(self.rgb8.astype(np.float32) / 255.0), self.depth_m, self.colour_valid).to(device)
+
+
+def resized_frame(frame: Frame, scale: float, valid_region: tuple[int, int, int, int] | None = None) -> ResizedFrame:
+    """A frame at ``scale``: area-averaged colour, depth by :func:`resize_depth`. ``valid_region`` (top, bottom, left,
+    right at full resolution, as :attr:`RgbdSequence.valid_region`) marks where the colour has data; None or the
+    whole frame: everywhere."""
     height, width = frame.depth_m.shape
     size = scaled_size(frame.depth_m, scale)
     rgb = frame.rgb if size == (width, height) else cv2.resize(frame.rgb, size, interpolation=cv2.INTER_AREA)
@@ -80,7 +98,13 @@ def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device
         colour_valid = torch.zeros((size[1], size[0]), dtype=torch.bool)
         colour_valid[int(np.ceil(top * scale)):int(np.floor(bottom * scale)),
                      int(np.ceil(left * scale)):int(np.floor(right * scale))] = True
-    return ViewImages(torch.from_numpy(rgb.astype(np.float32) / 255.0), resize_depth(frame.depth_m, scale), colour_valid).to(device)
+    return ResizedFrame(rgb, resize_depth(frame.depth_m, scale), colour_valid)
+
+
+def resize_frame(frame: Frame, scale: float, device: torch.device = torch.device("cpu"),
+                 valid_region: tuple[int, int, int, int] | None = None) -> ViewImages:
+    """A frame as mapper images at ``scale`` on ``device`` (:func:`resized_frame`)."""
+    return resized_frame(frame, scale, valid_region).images(device)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -575,17 +599,25 @@ class MappingStage:
         added = 0
         start, end = config.sharp_lr_scale_start, config.sharp_lr_scale_end
 
-        def read(item: MappingView | FrameBetween) -> ViewImages:
-            return resize_frame(self.at_frame_time(self.sequence[item.frame_index]), scales[type(item)], self.device,
-                                self.sequence.valid_region)
+        # Frames of the first round are kept for the later ones while they fit in sharp_frames_kept_mb; the rest
+        # are read again (decoding, colour registration and the rolling shutter's resampling take CPU the steps need).
+        kept: dict[tuple[type, int], ResizedFrame] = {}
+        kept_bytes_left = config.sharp_frames_kept_mb * 2**20
+
+        def read(item: MappingView | FrameBetween) -> ResizedFrame:
+            key = (type(item), item.frame_index)
+            if key in kept:
+                return kept[key]
+            return resized_frame(self.at_frame_time(self.sequence[item.frame_index]), scales[type(item)],
+                                 self.sequence.valid_region)
 
         for round_index in range(config.sharp_iterations_per_view):
             chunks = self.view_chunks()
             if frames_between:
                 chunks += shuffled_chunks(list(frames_between), config.window_size, self._rng)
                 chunks = [chunks[index] for index in self._rng.permutation(len(chunks))]
-            # Frames are read again each round, a few ahead in a worker thread (decoding and colour registration
-            # overlap the steps): holding every view at this resolution would not be bounded.
+            # Frames not kept are read a few ahead in a worker thread (decoding and colour registration overlap the
+            # steps): holding every view at this resolution would not be bounded.
             with ReadAhead([item for chunk in chunks for item in chunk], read) as reading:
                 frames_read = iter(reading)
                 for chunk_index, chunk in enumerate(chunks):
@@ -596,7 +628,11 @@ class MappingStage:
                     camera = cameras[kind]
                     posed, exposure_views = [], []
                     for item in chunk:
-                        images = next(frames_read)
+                        resized = next(frames_read)
+                        if round_index == 0 and resized.nbytes <= kept_bytes_left:
+                            kept[(type(item), item.frame_index)] = resized
+                            kept_bytes_left -= resized.nbytes
+                        images = resized.images(self.device)
                         if kind is FrameBetween:
                             poses = self.poses_over_exposure(item.world_from_camera, item.exposure_path, camera, images.depth_m)
                             exposure_views.append(item.view)
