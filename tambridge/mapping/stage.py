@@ -601,8 +601,9 @@ class MappingStage:
 
         # Frames of the first round are kept for the later ones while they fit in sharp_frames_kept_mb; the rest
         # are read again (decoding, colour registration and the rolling shutter's resampling take CPU the steps need).
+        # A pass of one round keeps nothing.
         kept: dict[tuple[type, int], ResizedFrame] = {}
-        kept_bytes_left = config.sharp_frames_kept_mb * 2**20
+        kept_bytes_left = config.sharp_frames_kept_mb * 2**20 if config.sharp_iterations_per_view > 1 else 0
 
         def read(item: MappingView | FrameBetween) -> ResizedFrame:
             key = (type(item), item.frame_index)
