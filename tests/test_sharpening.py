@@ -102,7 +102,6 @@ def test_sharpening_reads_frames_again_at_its_resolution_a_chunk_at_a_time(synth
     np.testing.assert_allclose(scales, [2.0, 1.6, 1.2, 0.8])
 
 
-
 def test_sharpening_keeps_its_first_rounds_frames_within_budget_and_fits_the_same_map(synthetic_sequence_dir, tmp_path,
                                                                                       monkeypatch):
     """Frames kept from the first round spare the later rounds' reads (decoding, registration, the rolling shutter's

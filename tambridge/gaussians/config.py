@@ -79,15 +79,15 @@ class MapperConfig:
     # PSNR is a squared-error figure: where the frames disagree on a surface's colour (auto exposure, reflections,
     # poses a pixel off) the squared term moves it to their mean, which scores higher than L1's median, for a
     # little SSIM (docs/benchmarks.md, "A squared colour term in the pass").
+    sharp_w_colour_squared: float = setting(10.0, "weight of the squared colour error (mean over pixels and "
+                                                  "channels) added to the mapping loss in the sharpening pass "
+                                                  "(0: the online loss alone)", NON_NEGATIVE)
     # Kept frames spare the later rounds' reads for up to this much more peak memory: worth it for the quality
     # preset's four rounds, too little saved for the default's two (docs/benchmarks.md, "The pass keeps its frames").
     sharp_frames_kept_mb: float = setting(0.0, "frames the sharpening pass reads in its first round are kept for "
                                                "its later rounds (colour as read, uint8) up to this many MB; the "
                                                "rest are read again (0: every round reads every frame)",
                                           NON_NEGATIVE)
-    sharp_w_colour_squared: float = setting(10.0, "weight of the squared colour error (mean over pixels and "
-                                                  "channels) added to the mapping loss in the sharpening pass "
-                                                  "(0: the online loss alone)", NON_NEGATIVE)
     # The views' exposures keep the online map in the median view's colours, which no recorded frame shows; fitted
     # to the frames as recorded, the map's colours become what the frames that see each surface show, which is what
     # a viewer of splats.ply shows: more PSNR as exported at the same cost (docs/benchmarks.md, "Sharp splats").
