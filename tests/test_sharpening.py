@@ -3,6 +3,7 @@ resolution a user views the map, built from frames read again a chunk at a time.
 
 import copy
 import dataclasses
+import logging
 import types
 
 import numpy as np
@@ -103,7 +104,7 @@ def test_sharpening_reads_frames_again_at_its_resolution_a_chunk_at_a_time(synth
 
 
 def test_sharpening_keeps_its_first_rounds_frames_within_budget_and_fits_the_same_map(synthetic_sequence_dir, tmp_path,
-                                                                                      monkeypatch):
+                                                                                      monkeypatch, caplog):
     """Frames kept from the first round spare the later rounds' reads (decoding, registration, the rolling shutter's
     resampling) and are exactly the frames read again: the map after the pass is the same to the bit."""
     sequence = open_sequence(synthetic_sequence_dir, max_frames=24)
@@ -129,6 +130,12 @@ def test_sharpening_keeps_its_first_rounds_frames_within_budget_and_fits_the_sam
     for kept in (2.5, 4):
         for name in ("means_m", "rgb", "log_radii_m", "opacity_logits"):
             assert torch.equal(getattr(maps[kept], name), getattr(maps[0], name)), (kept, name)
+    # A pass of one round has no later round to keep frames for.
+    stage.mapper_config = dataclasses.replace(stage.mapper_config, sharp_iterations_per_view=1)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="tambridge.mapping"):
+        stage.sharpen()
+    assert caplog.messages[-1].endswith("; 0 frames kept for the later rounds (0 MB)"), caplog.messages
 
 
 def test_sharpening_never_runs_coarser_than_the_mapping(synthetic_sequence_dir, tmp_path, monkeypatch):

@@ -649,9 +649,10 @@ class MappingStage:
                                       self.exposures(exposure_views) if config.sharp_through_exposures else None,
                                       learning_rate_scale, config.sharp_w_colour_squared)
         logger.info("sharpening at %dx%d: %d steps per view over %d views and %d frames between them (at %dx%d), "
-                    "+%d Gaussians -> %d", cameras[MappingView].width, cameras[MappingView].height,
-                    config.sharp_iterations_per_view, len(self.views), len(frames_between), cameras[FrameBetween].width,
-                    cameras[FrameBetween].height, added, len(self.map))
+                    "+%d Gaussians -> %d; %d frames kept for the later rounds (%.0f MB)", cameras[MappingView].width,
+                    cameras[MappingView].height, config.sharp_iterations_per_view, len(self.views), len(frames_between),
+                    cameras[FrameBetween].width, cameras[FrameBetween].height, added, len(self.map), len(kept),
+                    sum(resized.nbytes for resized in kept.values()) / 2**20)
 
     def rendering_poses(self, trajectory: Trajectory) -> np.ndarray:
         """(N, 4, 4) rendering pose of every frame of the frontend's ``trajectory`` (see the module doc).
