@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sequences import DATA_FOLDERS, KITCHEN, camera_file_for, find_sequence  # noqa: E402
+from benchmarks.sequences import KITCHEN, add_sequence_arguments, camera_file_for, find_sequence  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 from tambridge.trajectory import Trajectory, read_tum_trajectory  # noqa: E402
 
@@ -88,9 +88,7 @@ def format_table(rows: list[dict]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, nargs="*", default=list(DATA_FOLDERS),
-                        help="folders holding the sequence by its folder name")
-    parser.add_argument("--sequence", default=KITCHEN, help="folder name (or path) of a sequence with a camera file")
+    add_sequence_arguments(parser, KITCHEN)
     parser.add_argument("--colour-focal-factors", type=float, nargs="*", default=list(DEFAULT_COLOUR_FOCAL_FACTORS))
     parser.add_argument("--depth-fx", type=float, nargs="*", default=[], help="depth camera fx = fy values, px")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "camera_sweep.json")

@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sequences import DATA_FOLDERS, FR1_XYZ, FR1_XYZ_FIRST37, KITCHEN, camera_file_for, find_sequence, merge_rows  # noqa: E402
+from benchmarks.sequences import FR1_XYZ, FR1_XYZ_FIRST37, KITCHEN, add_data_argument, camera_file_for, find_sequence, merge_rows  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
 SEQUENCES = (FR1_XYZ, KITCHEN, FR1_XYZ_FIRST37)
@@ -137,8 +137,7 @@ def format_table(rows: list[dict]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, nargs="*", default=list(DATA_FOLDERS),
-                        help="folders holding the sequences by their folder names")
+    add_data_argument(parser)
     parser.add_argument("--sequences", nargs="*", default=list(SEQUENCES), help="folder names (or paths)")
     parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=list(METHODS))
     parser.add_argument("--max-frames", type=int)

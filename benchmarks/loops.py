@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sequences import DATA_FOLDERS, FR1_XYZ, camera_file_for, find_sequence  # noqa: E402
+from benchmarks.sequences import FR1_XYZ, add_sequence_arguments, camera_file_for, find_sequence  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
 MISSED = "missed"
@@ -73,8 +73,7 @@ def relative_drift_m(estimate: np.ndarray, truth: np.ndarray, a: int, b: int) ->
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, nargs="*", default=list(DATA_FOLDERS), help="folders holding the sequence")
-    parser.add_argument("--sequence", default=FR1_XYZ, help="sequence folder name (under --data) or path")
+    add_sequence_arguments(parser, FR1_XYZ)
     parser.add_argument("--max-frames", type=int)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="config override, e.g. frontend.orb.loop_min_inliers=30")

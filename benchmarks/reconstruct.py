@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sequences import DATA_FOLDERS, KITCHEN, camera_file_for, find_sequence, merge_rows  # noqa: E402
+from benchmarks.sequences import KITCHEN, add_data_argument, camera_file_for, find_sequence, merge_rows  # noqa: E402
 from tambridge.config import load_config  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
@@ -130,8 +130,7 @@ def bridge_gains(rows: list[dict]) -> list[dict]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, nargs="*", default=list(DATA_FOLDERS),
-                        help="folders holding the sequences by their folder names")
+    add_data_argument(parser)
     parser.add_argument("--sequences", nargs="*", default=[KITCHEN], help="real sequences: folder names (or paths)")
     parser.add_argument("--max-frames", type=int, default=150, help="frames of each real sequence (0: all)")
     parser.add_argument("--presets", nargs="*", default=list(PRESETS))

@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sequences import DATA_FOLDERS, FR1_XYZ, camera_file_for, find_sequence, merge_rows  # noqa: E402
+from benchmarks.sequences import FR1_XYZ, add_data_argument, camera_file_for, find_sequence, merge_rows  # noqa: E402
 from tambridge.evaluation.metrics import read_metrics  # noqa: E402
 from tambridge.evaluation.trajectory import evaluate_trajectory  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
@@ -185,8 +185,7 @@ def update_results_doc(result: dict) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, nargs="*", default=list(DATA_FOLDERS),
-                        help="folders holding the sequences by their folder names")
+    add_data_argument(parser)
     parser.add_argument("--quick", action="store_true", help="first 100 frames of each sequence")
     parser.add_argument("--gpu", action="store_true",
                         help="tambridge runs map on CUDA with gsplat (--device cuda); stops at once when there is no GPU")

@@ -3,6 +3,7 @@ files to read them with where the folder's own is not the best reading."""
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,6 +47,18 @@ def find_sequence(name: str, data: list[Path] | tuple[Path, ...] = DATA_FOLDERS)
     how = f" (get it with {HOW_TO_GET[Path(name).name]})" if Path(name).name in HOW_TO_GET else ""
     raise MissingSequence(f"{Path(name).name}: not found in {where}; put it into one of them or name its folder "
                           f"with --data{how}")
+
+
+def add_data_argument(parser: argparse.ArgumentParser) -> None:
+    """``--data``: the folders :func:`find_sequence` looks in (default :data:`DATA_FOLDERS`)."""
+    parser.add_argument("--data", type=Path, nargs="*", default=list(DATA_FOLDERS),
+                        help="folders holding the sequences, each under its folder name")
+
+
+def add_sequence_arguments(parser: argparse.ArgumentParser, default_sequence: str) -> None:
+    """``--data`` and ``--sequence`` for a benchmark of one sequence (give both to :func:`find_sequence`)."""
+    add_data_argument(parser)
+    parser.add_argument("--sequence", default=default_sequence, help="folder name under --data, or a path")
 
 
 def camera_file_for(sequence: Path, registered_colour: bool = True) -> Path | None:

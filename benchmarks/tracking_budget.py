@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.dense_tracking import orb_config  # noqa: E402
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sequences import DATA_FOLDERS, FR1_XYZ, camera_file_for, find_sequence  # noqa: E402
+from benchmarks.sequences import FR1_XYZ, add_sequence_arguments, camera_file_for, find_sequence  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
 MAPPING_THREAD_STAGES = ("local_ba", "loop", "global_ba")
@@ -123,9 +123,7 @@ def format_table(row: dict) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, nargs="*", default=list(DATA_FOLDERS),
-                        help="folders holding the sequence by its folder name")
-    parser.add_argument("--sequence", default=FR1_XYZ, help="folder name (or path)")
+    add_sequence_arguments(parser, FR1_XYZ)
     parser.add_argument("--max-frames", type=int)
     parser.add_argument("--runs", type=int, default=2, help="threaded runs of the CLI after the budget")
     parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "tracking_budget.json")

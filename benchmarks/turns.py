@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.machine import describe_machine  # noqa: E402
-from benchmarks.sequences import DATA_FOLDERS, KITCHEN, camera_file_for, find_sequence  # noqa: E402
+from benchmarks.sequences import KITCHEN, add_sequence_arguments, camera_file_for, find_sequence  # noqa: E402
 from tambridge.files import atomic_write_text  # noqa: E402
 
 METHODS = ("orb", "open3d", "colmap")
@@ -113,8 +113,7 @@ def parse_segment(text: str) -> tuple[int, int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", nargs="*", type=Path, default=list(DATA_FOLDERS), help="folders holding the sequence")
-    parser.add_argument("--sequence", default=KITCHEN, help="folder name under --data, or a path")
+    add_sequence_arguments(parser, KITCHEN)
     parser.add_argument("--segments", nargs="*", type=parse_segment, default=[parse_segment(s) for s in SEGMENTS],
                         metavar="START-END")
     parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=METHODS)
